@@ -23,7 +23,8 @@ Progress = Callable[[int, int], None]
 
 
 class _HasRadiance(Protocol):
-    radiance: np.ndarray
+    @property
+    def radiance(self) -> np.ndarray: ...
 
 
 def draw_thresholds(
@@ -76,6 +77,7 @@ def simulate(
     rng: np.random.Generator | int | None = 0,
     t0_us: int = 0,
     thresholds: tuple[np.ndarray, np.ndarray] | None = None,
+    sensor_seed: int | None = None,
     progress: Progress | None = None,
 ) -> Recording:
     """Simulate ``n_cycles`` modulation cycles of a static scene.
@@ -92,6 +94,9 @@ def simulate(
     t0_us : start time of the first cycle.
     thresholds : optional ``(c_on, c_off)`` maps to use instead of drawing them
         (a calibration capture reuses the sensor's frozen mismatch this way).
+    sensor_seed : when given (and ``thresholds`` is not), the frozen mismatch is drawn
+        from this seed rather than from ``rng``: the same seed is the same physical
+        sensor across captures.
     progress : called as ``progress(done_cycles, n_cycles)``.
 
     Returns
@@ -109,7 +114,9 @@ def simulate(
         raise ValueError(f"sensor too large for uint16 coordinates: {width}x{height}")
 
     if thresholds is None:
-        c_on, c_off = draw_thresholds(sensor, width=width, height=height, rng=rng)
+        c_on, c_off = draw_thresholds(
+            sensor, width=width, height=height,
+            rng=rng if sensor_seed is None else sensor_seed)
     else:
         c_on, c_off = (np.asarray(a, dtype=np.float64) for a in thresholds)
         if c_on.shape != radiance.shape or c_off.shape != radiance.shape:
@@ -160,6 +167,7 @@ def simulate(
         "n_cycles": int(n_cycles),
         "t0_us": int(t0_us),
         "seed": rng if isinstance(rng, int) else None,
+        "sensor_seed": sensor_seed,
         "radiance_unit": info.get("unit", "relative"),
         "scene": info.get("name", ""),
     }

@@ -1,0 +1,305 @@
+"""``asynhdr demo``, ``simulate``, ``calibrate``, ``reconstruct``."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from asynhdr.cli import app
+
+console = Console()
+err_console = Console(stderr=True)
+
+IMAGE_FORMATS = ("exr", "hdr", "npy", "png", "tif")
+
+
+def fail(msg: str) -> None:
+    """Print an error and exit with status 2."""
+    err_console.print(f"[bold red]error:[/] {msg}")
+    raise typer.Exit(code=2)
+
+
+@contextmanager
+def progress_bar() -> Iterator[Callable[[str, int, int], None]]:
+    """A rich progress bar driven by ``update(stage, done, total)`` callbacks."""
+    with Progress(TextColumn("{task.description:<22}"), BarColumn(),
+                  TextColumn("{task.completed}/{task.total}"), TimeElapsedColumn(),
+                  console=err_console, transient=False) as prog:
+        tasks: dict[str, Any] = {}
+
+        def update(stage: str, done: int, total: int) -> None:
+            if stage not in tasks:
+                tasks[stage] = prog.add_task(stage, total=total)
+            prog.update(tasks[stage], completed=done, total=total)
+
+        yield update
+
+
+def _parse_formats(formats: str) -> list[str]:
+    out = [f.strip().lower().lstrip(".") for f in formats.split(",") if f.strip()]
+    bad = [f for f in out if f not in IMAGE_FORMATS]
+    if bad:
+        fail(f"--formats: unknown image format(s) {bad}; choose from {list(IMAGE_FORMATS)}")
+    return out
+
+
+def _write_images(img: np.ndarray, stem: Path, formats: list[str], meta: dict[str, Any]) -> None:
+    from asynhdr.io.images import write_image
+
+    for f in formats:
+        write_image(stem.with_suffix("." + f), img, metadata=meta if f != "png" else None)
+
+
+# --------------------------------------------------------------------------- demo
+
+
+@app.command()
+def demo(
+    out: Path = typer.Option(Path("out/demo"), help="Output folder."),
+    width: int = typer.Option(640, help="Sensor width (pixels)."),
+    height: int = typer.Option(480, help="Sensor height (pixels)."),
+    preset: str = typer.Option("v2e", help="Sensor preset."),
+    n_cycles: int = typer.Option(3, help="Chart cycles to simulate."),
+    n_flat: int = typer.Option(4, help="Flat-field captures for the c-map."),
+    k: float = typer.Option(10.0, help="k of the exponential weighting 2^(-k t)."),
+    seed: int = typer.Option(0, help="Seed of each capture's randomness."),
+    sensor_seed: int = typer.Option(1, help="Seed of the sensor's frozen mismatch."),
+) -> None:
+    """Simulate the paper's step chart, calibrate a c-map, reconstruct with every method,
+    and print the SNR table and the dynamic range beside the paper's."""
+    from asynhdr.experiments import PAPER_DR_DB, PAPER_SNR_DB, run_chart_experiment
+    from asynhdr.io.cmap import save_cmap
+    from asynhdr.io.images import write_image
+    from asynhdr.plots import plot_chart_response, plot_mosaic, plot_snr_per_level
+    from asynhdr.reconstruct import WEIGHTINGS
+    from asynhdr.sensor.params import get_preset
+
+    try:
+        sensor = get_preset(preset)
+    except ValueError as exc:
+        fail(str(exc))
+    t0 = time.perf_counter()
+    console.print(f"[bold]asynhdr demo[/]: step chart (36 levels, 160,000 lux), "
+                  f"{width}x{height} sensor '{preset}', {n_cycles} cycles, "
+                  f"c-map from {n_flat} flat fields")
+    try:
+        with progress_bar() as update:
+            res = run_chart_experiment(width=width, height=height, sensor=sensor,
+                                       n_cycles=n_cycles, n_flat=n_flat, k=k, seed=seed,
+                                       sensor_seed=sensor_seed, progress=update)
+    except ValueError as exc:
+        fail(str(exc))
+    out.mkdir(parents=True, exist_ok=True)
+    images_dir = out / "images"
+    meta: dict[str, Any] = {"scene": "step_chart", "unit": "lux", "radiometric": False}
+    for r in res.results:
+        name = r.method + ("_cmap" if r.with_cmap else "")
+        info = dict(meta, method=r.method, k=k, with_cmap=r.with_cmap,
+                    radiometric=r.method == "ttfe")
+        _write_images(r.image, images_dir / name, ["exr", "png"], info)
+    write_image(out / "truth.exr", res.scene.radiance, metadata={"unit": "lux"})
+    write_image(out / "truth.png", res.scene.radiance)
+    save_cmap(out / "cmap.npz", res.cmap)
+    plot_snr_per_level(res, out / "snr_per_level.png")
+    plot_chart_response(res, out / "chart_response.png")
+    picks = [("truth", res.scene.radiance)] + [
+        (f"{r.method}{' + c-map' if r.with_cmap else ''}", r.image)
+        for r in res.results if r.with_cmap or r.method == "raw"]
+    plot_mosaic([p[1] for p in picks], [p[0] for p in picks], out / "mosaic.png")
+    summary = res.summary()
+    summary["elapsed_s"] = time.perf_counter() - t0
+    from asynhdr._atomic import atomic_path
+
+    with atomic_path(out / "results.json") as tmp:
+        tmp.write_text(json.dumps(summary, indent=1))
+
+    table = Table(title="Mean patch SNR (dB) on the 36-level chart, last cycle")
+    for col in ("weighting", "no c-map", "paper", "with c-map", "paper", "DR (dB)",
+                "resolved D"):
+        table.add_column(col, justify="right" if col != "weighting" else "left")
+    for m in WEIGHTINGS:
+        a, b = res.get(m, False), res.get(m, True)
+        pa, pb = PAPER_SNR_DB[m]
+        table.add_row(m, f"{a.mean_snr_db:.2f}", f"{pa:.2f}", f"{b.mean_snr_db:.2f}",
+                      f"{pb:.2f}", f"{b.dr.dr_db:.1f}",
+                      f"{b.dr.d_brightest:.2f}-{b.dr.d_darkest:.2f}")
+    for m in ("ttfe", "count"):
+        try:
+            a, b = res.get(m, False), res.get(m, True)
+        except KeyError:
+            continue
+        table.add_row(f"{m} (baseline)", f"{a.mean_snr_db:.2f}", "-", f"{b.mean_snr_db:.2f}",
+                      "-", f"{b.dr.dr_db:.1f}", f"{b.dr.d_brightest:.2f}-{b.dr.d_darkest:.2f}")
+    console.print(table)
+    best = res.get("exp", True)
+    console.print(
+        f"Dynamic range (exp, k={k:g}, with c-map): [bold]{best.dr.dr_db:.1f} dB[/] "
+        f"(densities {best.dr.d_brightest:.2f} to {best.dr.d_darkest:.2f}); "
+        f"paper: {PAPER_DR_DB} dB (0.10 to 5.23)")
+    snr = res.snr_table()
+    order_ok = all(snr[a][1] < snr[b][1] for a, b in
+                   zip(list(WEIGHTINGS)[:-1], list(WEIGHTINGS)[1:], strict=True))
+    gain_ok = all(v[1] > v[0] for v in snr.values())
+    console.print(f"Ordering raw < linear < quadratic < poly5 < exp (with c-map): "
+                  f"{'yes' if order_ok else 'no'}; c-map raises every row: "
+                  f"{'yes' if gain_ok else 'no'}")
+    console.print(f"{res.metadata['n_events']:,} chart events; outputs in {out}/ "
+                  f"({time.perf_counter() - t0:.1f} s)")
+
+
+# --------------------------------------------------------------------------- simulate
+
+
+def _scene_from_spec(spec: str, width: int, height: int, scale: float) -> Any:
+    from asynhdr.scene import flat_field, from_radiance_map, step_chart
+
+    if spec == "chart":
+        return step_chart(width=width, height=height)
+    if spec.startswith("flat:"):
+        try:
+            value = float(spec[5:])
+        except ValueError:
+            fail(f"scene {spec!r}: expected flat:RADIANCE with a number, e.g. flat:1600")
+        if not (value >= 0 and math.isfinite(value)):
+            fail(f"scene {spec!r}: radiance must be finite and >= 0")
+        return flat_field(width=width, height=height, radiance=value * scale, unit="lux")
+    from asynhdr.io.images import read_radiance
+
+    radiance, info = read_radiance(spec)
+    if info.get("clipped_negative"):
+        err_console.print(f"{spec}: {info['clipped_negative']} negative pixels clipped to 0")
+    return from_radiance_map(radiance, width=width, height=height, scale=scale,
+                             name=Path(spec).stem)
+
+
+@app.command()
+def simulate(
+    scene: str = typer.Argument(..., help="'chart' (the paper's step chart), "
+                                "'flat:RADIANCE', or an HDR image (.exr .hdr .npy .tif)."),
+    out: Path = typer.Option(..., "--out", "-o", help="Recording to write "
+                             "(.h5, .npz, .raw EVT 3.0, .txt)."),
+    width: int = typer.Option(640, help="Sensor width (pixels)."),
+    height: int = typer.Option(480, help="Sensor height (pixels)."),
+    preset: str = typer.Option("v2e", help="Sensor preset."),
+    n_cycles: int = typer.Option(3, help="Modulation cycles."),
+    period_us: int = typer.Option(50_000, help="Cycle period (µs)."),
+    ramp_fraction: float = typer.Option(0.9, help="Part of the cycle the ramp takes."),
+    t1_shape: str = typer.Option("linear", help="Scene panel ramp: linear | exponential."),
+    t2_shape: str = typer.Option("linear", help="Reference panel ramp: linear | exponential."),
+    l_const: float = typer.Option(10.0, help="Reference radiance, in the scene's unit."),
+    scale: float = typer.Option(1.0, help="Multiply the scene radiance by this."),
+    seed: int = typer.Option(0, help="Seed of this capture's randomness."),
+    sensor_seed: int = typer.Option(1, help="Seed of the sensor's frozen mismatch "
+                                    "(same seed, same sensor)."),
+) -> None:
+    """Simulate a scene seen through the rig and write the recording."""
+    from asynhdr.io import write_recording
+    from asynhdr.rig import Rig
+    from asynhdr.sensor.params import get_preset
+    from asynhdr.simulate import simulate as run
+
+    try:
+        sensor = get_preset(preset)
+        rig = Rig(period_us=period_us, ramp_fraction=ramp_fraction, t1_shape=t1_shape,  # type: ignore[arg-type]
+                  t2_shape=t2_shape, l_const=l_const)  # type: ignore[arg-type]
+        sc = _scene_from_spec(scene, width, height, scale)
+        with progress_bar() as update:
+            rec = run(sc, rig=rig, sensor=sensor, n_cycles=n_cycles, rng=seed,
+                      sensor_seed=sensor_seed, progress=lambda d, t: update("simulate", d, t))
+        write_recording(out, rec)
+    except (ValueError, FileNotFoundError) as exc:
+        fail(str(exc))
+    console.print(f"{rec.events.size:,} events, {rec.triggers.size} triggers, "
+                  f"{rec.width}x{rec.height} -> {out}")
+
+
+# --------------------------------------------------------------------------- calibrate
+
+
+@app.command()
+def calibrate(
+    flats: list[Path] = typer.Argument(..., help="Flat-field recordings of one sensor."),
+    out: Path = typer.Option(..., "--out", "-o", help="c-map to write (.npz)."),
+    k: float = typer.Option(10.0, help="k of the exponential weighting."),
+) -> None:
+    """Estimate the c-map (per-pixel threshold correction) from flat-field recordings."""
+    from asynhdr.calibrate import estimate_cmap
+    from asynhdr.io import open_recording
+    from asynhdr.io.cmap import save_cmap
+
+    try:
+        caps = []
+        with progress_bar() as update:
+            for i, f in enumerate(flats):
+                caps.append(open_recording(f))
+                update("read flat fields", i + 1, len(flats))
+        cmap = estimate_cmap(caps, k=k)
+        cmap.metadata["sources"] = [str(f) for f in flats]
+        save_cmap(out, cmap)
+    except (ValueError, FileNotFoundError) as exc:
+        fail(str(exc))
+    ex = cmap.maps[f"exp:k={k:g}"]
+    console.print(f"c-map from {len(flats)} captures ({cmap.metadata['n_cycles']} cycles): "
+                  f"{', '.join(cmap.maps)}; exp map spread (std) {float(np.std(ex)):.4f} -> {out}")
+
+
+# --------------------------------------------------------------------------- reconstruct
+
+
+@app.command()
+def reconstruct(
+    recording: Path = typer.Argument(..., help="Event recording (any supported format)."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder."),
+    method: str = typer.Option("exp", help="raw | linear | quadratic | poly5 | exp | ttfe | "
+                               "count."),
+    k: float = typer.Option(10.0, help="k of the exponential weighting."),
+    cmap: Path | None = typer.Option(None, help="c-map from 'asynhdr calibrate'."),
+    threshold: float | None = typer.Option(None, help="Contrast threshold c (default: the "
+                                           "recording's sensor, else 0.2)."),
+    window_us: float | None = typer.Option(None, help="Integration window after each cycle "
+                                           "start (default: the ramp, else the period)."),
+    width: int | None = typer.Option(None, help="Sensor width, for files without geometry."),
+    height: int | None = typer.Option(None, help="Sensor height, for files without geometry."),
+    formats: str = typer.Option("exr,png", help=f"Comma-separated, from {IMAGE_FORMATS}."),
+    tonemap: str = typer.Option("log", help="PNG tone mapping: log | reinhard | linear."),
+) -> None:
+    """Reconstruct one HDR image per modulation cycle."""
+    from asynhdr.io import open_recording
+    from asynhdr.io.cmap import load_cmap
+    from asynhdr.io.images import write_image
+    from asynhdr.reconstruct import reconstruct as run
+    from asynhdr.reconstruct import windows_for
+
+    fmts = _parse_formats(formats)
+    try:
+        rec = open_recording(recording, width=width, height=height)
+        cm = load_cmap(cmap) if cmap is not None else None
+        windows = windows_for(rec, window_us=window_us)
+        imgs = run(rec, method=method, k=k, cmap=cm, windows=windows, threshold=threshold)
+    except (ValueError, FileNotFoundError) as exc:
+        fail(str(exc))
+    meta = {"source": str(recording), "method": method, "k": k,
+            "cmap": str(cmap) if cmap else None, "radiometric": method == "ttfe",
+            "unit": rec.metadata.get("radiance_unit", "relative")}
+    with progress_bar() as update:
+        for i, img in enumerate(imgs):
+            stem = out / f"{recording.stem}_{method}_{i:04d}"
+            for f in fmts:
+                if f == "png":
+                    write_image(stem.with_suffix(".png"), img, tonemap=tonemap)
+                else:
+                    write_image(stem.with_suffix("." + f), img,
+                                metadata=dict(meta, cycle=i) if f in ("exr", "tif") else None)
+            update("write images", i + 1, len(imgs))
+    console.print(f"{len(imgs)} images ({method}) from {rec.events.size:,} events -> {out}/")
