@@ -28,7 +28,7 @@ from asynhdr.reconstruct import DEFAULT_K, WEIGHTINGS, reconstruct
 from asynhdr.rig import Rig
 from asynhdr.scene import PAPER_ILLUMINANCE_LUX, Scene, flat_field, step_chart
 from asynhdr.sensor.params import SensorParams, get_preset
-from asynhdr.simulate import draw_thresholds, simulate
+from asynhdr.simulate import simulate
 
 __all__ = [
     "PAPER_DR_DB",
@@ -143,7 +143,6 @@ def run_chart_experiment(
     scene = step_chart(width=width, height=height, illuminance_lux=illuminance_lux)
     if scene.rois is None or scene.densities is None or scene.truth is None:
         raise RuntimeError("step_chart returned a scene without patches")
-    thresholds = draw_thresholds(sensor, width=width, height=height, rng=sensor_seed)
     seeds = np.random.SeedSequence(seed).spawn(1 + n_flat)
 
     def cb(stage: str) -> Callable[[int, int], None] | None:
@@ -152,14 +151,15 @@ def run_chart_experiment(
         return lambda d, t: progress(stage, d, t)
 
     rec = simulate(scene, rig=rig, sensor=sensor, n_cycles=n_cycles,
-                   rng=np.random.default_rng(seeds[0]), thresholds=thresholds,
+                   rng=np.random.default_rng(seeds[0]), sensor_seed=sensor_seed,
                    progress=cb("simulate chart"))
     flat = flat_field(width=width, height=height,
                       radiance=illuminance_lux * 10.0 ** (-flat_density), unit="lux")
     caps = []
     for i in range(n_flat):
         caps.append(simulate(flat, rig=rig, sensor=sensor, n_cycles=flat_cycles,
-                             rng=np.random.default_rng(seeds[1 + i]), thresholds=thresholds))
+                             rng=np.random.default_rng(seeds[1 + i]),
+                             sensor_seed=sensor_seed))
         if progress is not None:
             progress("flat-field captures", i + 1, n_flat)
     cmap = estimate_cmap(caps, methods=list(WEIGHTINGS), k=k)

@@ -1,7 +1,11 @@
 """Parameters of the DVS pixel model, and named presets.
 
-Every value is written once, here, with its source. Thresholds are in natural-log
-units of irradiance (a pixel fires when ``|log I - log I_ref| >= c``).
+Every value is written once, here, with its source; docs/sensor.md tabulates them.
+Thresholds are in natural-log units of irradiance (a pixel fires when
+``|log I - log I_ref| >= c``). Irradiance is in the scene's unit (lux for the chart)
+times ``k_lens``.
+
+Each non-ideality has a switch: a zero rate, time or fraction turns it off.
 """
 
 from __future__ import annotations
@@ -21,10 +25,37 @@ class SensorParams:
     ----------
     name : preset name, or ``"custom"``.
     threshold_on, threshold_off : nominal ON and OFF contrast thresholds ``c`` (log
-        units). v2e's defaults are 0.2 for both (Hu, Liu, Delbruck 2021, v2e).
-    threshold_sigma : standard deviation of the per-pixel threshold mismatch (log
-        units), frozen per pixel, Gaussian. v2e's default is 0.03.
+        units).
+    threshold_sigma : standard deviation of the frozen per-pixel threshold mismatch
+        (log units, Gaussian).
     threshold_min : thresholds drawn below this are raised to it (v2e clips at 0.01).
+    reset_noise_sigma : per-event noise on the new reference level after each event
+        (log units, Gaussian); 0 disables.
+    refractory_us : after an event the pixel ignores its input for this long; the new
+        reference is the level at the end of the refractory period. 0 disables.
+    cutoff_hz : photoreceptor 3 dB bandwidth at ``cutoff_irradiance``; the time
+        constant ``tau = 1 / (2 pi cutoff_hz) * (cutoff_irradiance + dark_irradiance) /
+        (I + dark_irradiance)``, capped at ``tau_max_us``: dark pixels respond late.
+        0 disables the low-pass.
+    cutoff_irradiance : irradiance at which the bandwidth is ``cutoff_hz``.
+    dark_irradiance : the dark current, as an equivalent irradiance.
+    tau_max_us : the longest photoreceptor time constant.
+    latency_us : fixed delay from threshold crossing to timestamp.
+    jitter_sigma_us : Gaussian timestamp jitter (standard deviation).
+    leak_rate_hz : ON leak events per pixel per second (junction leakage in the reset
+        switch), independent of light.
+    shot_noise_rate_hz : ON+OFF shot-noise events per pixel per second in the dark.
+    shot_noise_bright_factor : shot-noise rate at ``shot_noise_full_irradiance`` and above,
+        relative to the dark rate (v2e's intensity factor); linear in between.
+    shot_noise_full_irradiance : irradiance regarded as full scale for shot noise.
+    hot_pixel_fraction, hot_pixel_rate_hz : fraction of pixels that fire ON and OFF
+        events at random, and their rate.
+    dead_pixel_fraction : fraction of pixels that never fire.
+    max_event_rate_hz : the readout's event-rate limit (events per second for the
+        whole array); 0 is unlimited.
+    arbiter : ``"delay"`` (events queue and their timestamps move later) or ``"drop"``
+        (events that find the queue full are lost).
+    arbiter_buffer_events : queue length for ``"drop"``.
     timestamp_resolution_us : event time quantum; timestamps are floored to it.
     """
 
@@ -33,23 +64,80 @@ class SensorParams:
     threshold_off: float = 0.2
     threshold_sigma: float = 0.03
     threshold_min: float = 0.01
+    reset_noise_sigma: float = 0.0
+    refractory_us: float = 0.0
+    cutoff_hz: float = 0.0
+    cutoff_irradiance: float = 1000.0
+    dark_irradiance: float = 0.1
+    tau_max_us: float = 50_000.0
+    latency_us: float = 0.0
+    jitter_sigma_us: float = 0.0
+    leak_rate_hz: float = 0.0
+    shot_noise_rate_hz: float = 0.0
+    shot_noise_bright_factor: float = 0.25
+    shot_noise_full_irradiance: float = 1000.0
+    hot_pixel_fraction: float = 0.0
+    hot_pixel_rate_hz: float = 0.0
+    dead_pixel_fraction: float = 0.0
+    max_event_rate_hz: float = 0.0
+    arbiter: str = "delay"
+    arbiter_buffer_events: int = 1024
     timestamp_resolution_us: int = 1
 
     def __post_init__(self) -> None:
-        for nm in ("threshold_on", "threshold_off", "threshold_min"):
+        def bad(field: str, expected: str) -> ValueError:
+            return ValueError(f"sensor {self.name!r}: {field} must be {expected}, got "
+                              f"{getattr(self, field)!r}")
+
+        for nm in ("threshold_on", "threshold_off", "threshold_min", "cutoff_irradiance",
+                   "tau_max_us", "shot_noise_full_irradiance"):
             v = getattr(self, nm)
-            if not (math.isfinite(v) and v > 0):
-                raise ValueError(f"sensor {self.name!r}: {nm} must be positive, got {v}")
-        if not (math.isfinite(self.threshold_sigma) and self.threshold_sigma >= 0):
-            raise ValueError(
-                f"sensor {self.name!r}: threshold_sigma must be >= 0, got {self.threshold_sigma}"
-            )
+            if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
+                raise bad(nm, "a positive number")
+        for nm in ("threshold_sigma", "reset_noise_sigma", "refractory_us", "cutoff_hz",
+                   "dark_irradiance", "latency_us", "jitter_sigma_us", "leak_rate_hz",
+                   "shot_noise_rate_hz", "shot_noise_bright_factor", "hot_pixel_rate_hz",
+                   "max_event_rate_hz"):
+            v = getattr(self, nm)
+            if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
+                raise bad(nm, "a finite number >= 0")
+        for nm in ("hot_pixel_fraction", "dead_pixel_fraction"):
+            v = getattr(self, nm)
+            if not (isinstance(v, int | float) and 0.0 <= v <= 1.0):
+                raise bad(nm, "a fraction in [0, 1]")
+        if self.hot_pixel_fraction + self.dead_pixel_fraction > 1.0:
+            raise ValueError(f"sensor {self.name!r}: hot_pixel_fraction + dead_pixel_fraction "
+                             "must not exceed 1")
+        if self.arbiter not in ("delay", "drop"):
+            raise bad("arbiter", "'delay' or 'drop'")
+        if int(self.arbiter_buffer_events) != self.arbiter_buffer_events or \
+                self.arbiter_buffer_events < 1:
+            raise bad("arbiter_buffer_events", "a whole number >= 1")
         if int(self.timestamp_resolution_us) != self.timestamp_resolution_us or \
                 self.timestamp_resolution_us < 1:
-            raise ValueError(
-                f"sensor {self.name!r}: timestamp_resolution_us must be a whole number >= 1, "
-                f"got {self.timestamp_resolution_us}"
-            )
+            raise bad("timestamp_resolution_us", "a whole number >= 1")
+
+    @property
+    def tau_ref_us(self) -> float:
+        """Photoreceptor time constant at ``cutoff_irradiance`` (µs); 0 when disabled."""
+        return 1e6 / (2.0 * math.pi * self.cutoff_hz) if self.cutoff_hz > 0 else 0.0
+
+    def tau_us(self, irradiance: Any) -> Any:
+        """``tau(I) = tau_ref (I_ref + I_dark) / (I + I_dark)``, capped at ``tau_max_us``."""
+        import numpy as np
+
+        if self.cutoff_hz <= 0:
+            return np.zeros_like(np.asarray(irradiance, dtype=np.float64))
+        i = np.asarray(irradiance, dtype=np.float64)
+        tau = self.tau_ref_us * (self.cutoff_irradiance + self.dark_irradiance) / (
+            i + self.dark_irradiance)
+        return np.minimum(tau, self.tau_max_us)
+
+    @property
+    def has_noise_events(self) -> bool:
+        """Whether any event source other than the signal is on."""
+        return (self.leak_rate_hz > 0 or self.shot_noise_rate_hz > 0
+                or (self.hot_pixel_fraction > 0 and self.hot_pixel_rate_hz > 0))
 
     def with_(self, **changes: Any) -> SensorParams:
         """A copy with some fields changed (named ``custom`` unless ``name`` is given)."""
@@ -66,13 +154,68 @@ class SensorParams:
         return cls(**d)
 
 
+def _c(contrast_percent: float) -> float:
+    """Log threshold for a Weber contrast in percent: ``ln(1 + C/100)``."""
+    return math.log1p(contrast_percent / 100.0)
+
+
 PRESETS: dict[str, SensorParams] = {
     # Noise-free pixel, no mismatch: every pixel with the same radiance fires at the
     # same instants. Thresholds are v2e's nominal 0.2.
     "ideal": SensorParams(name="ideal", threshold_sigma=0.0),
-    # v2e's default pixel (v2e README / emulator defaults: pos_thres = neg_thres = 0.2,
-    # sigma_thres = 0.03), without its noise sources.
-    "v2e": SensorParams(name="v2e"),
+    # v2e's EventEmulator constructor defaults: pos_thres = neg_thres = 0.2,
+    # sigma_thres = 0.03, leak_rate_hz = 0.1, cutoff_hz = 0, shot_noise_rate_hz = 0,
+    # refractory_period_s = 0.
+    "v2e": SensorParams(name="v2e", leak_rate_hz=0.1),
+    # iniVation DAVIS346 (datasheet: contrast sensitivity 14.3 % ON / 22.5 % OFF,
+    # event bandwidth 12 Mev/s, minimum latency about 20 µs); noise, refractory and
+    # bandwidth as v2e's 'noisy' model (sigma_thres 0.05, cutoff 30 Hz at the dark end
+    # is v2e's; here 20 µs latency at 1000 lux sets the bright-end time constant),
+    # leak 0.1 Hz, shot noise 5 Hz, refractory 1 ms (v2e's --refractory_period default).
+    "davis346": SensorParams(
+        name="davis346",
+        threshold_on=_c(14.3),
+        threshold_off=_c(22.5),
+        threshold_sigma=0.05,
+        reset_noise_sigma=0.01,
+        refractory_us=1000.0,
+        cutoff_hz=1e6 / (2 * math.pi * 20.0),
+        cutoff_irradiance=1000.0,
+        dark_irradiance=0.1,
+        latency_us=0.0,
+        jitter_sigma_us=2.0,
+        leak_rate_hz=0.1,
+        shot_noise_rate_hz=5.0,
+        hot_pixel_fraction=1e-4,
+        hot_pixel_rate_hz=10.0,
+        dead_pixel_fraction=1e-4,
+        max_event_rate_hz=12e6,
+        arbiter="delay",
+    ),
+    # Sony IMX636 / Prophesee Gen4.1 (Finateu et al., ISSCC 2020: 1280x720, pixel latency
+    # about 100 µs at 1 klux, readout up to 1.066 Gev/s). Thresholds at the default
+    # biases about 25 % (Prophesee's bias documentation); mismatch, leak and shot noise
+    # as v2e's 'noisy' model; refractory 100 µs (order of the bias_refr default).
+    "imx636": SensorParams(
+        name="imx636",
+        threshold_on=_c(25.0),
+        threshold_off=_c(25.0),
+        threshold_sigma=0.05,
+        reset_noise_sigma=0.01,
+        refractory_us=100.0,
+        cutoff_hz=1e6 / (2 * math.pi * 100.0),
+        cutoff_irradiance=1000.0,
+        dark_irradiance=0.1,
+        latency_us=0.0,
+        jitter_sigma_us=2.0,
+        leak_rate_hz=0.1,
+        shot_noise_rate_hz=5.0,
+        hot_pixel_fraction=1e-4,
+        hot_pixel_rate_hz=10.0,
+        dead_pixel_fraction=1e-4,
+        max_event_rate_hz=1.066e9,
+        arbiter="delay",
+    ),
 }
 
 

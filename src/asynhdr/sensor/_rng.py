@@ -1,0 +1,48 @@
+"""Counter-based random numbers for the numba kernels.
+
+Per-event draws (reset noise, jitter) happen inside parallel loops. Drawing from a
+shared generator would make the result depend on thread scheduling; instead each draw
+is a hash of ``(seed, pixel, counter, stream)`` (SplitMix64 finaliser), so the same
+seed gives the same events bit for bit on any number of threads.
+"""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+
+__all__ = ["hash_normal", "hash_uniform", "seed_from"]
+
+_M1 = np.uint64(0xBF58476D1CE4E5B9)
+_M2 = np.uint64(0x94D049BB133111EB)
+_GOLD = np.uint64(0x9E3779B97F4A7C15)
+
+
+@nb.njit(cache=True, inline="always")
+def _mix(z):
+    z = (z ^ (z >> np.uint64(30))) * _M1
+    z = (z ^ (z >> np.uint64(27))) * _M2
+    return z ^ (z >> np.uint64(31))
+
+
+@nb.njit(cache=True, inline="always")
+def hash_uniform(seed, a, b, c):
+    """Uniform in (0, 1) from the 64-bit ``seed`` and three integer counters."""
+    z = np.uint64(seed)
+    z = _mix(z + _GOLD * np.uint64(a + 1))
+    z = _mix(z + _GOLD * np.uint64(b + 1))
+    z = _mix(z + _GOLD * np.uint64(c + 1))
+    return (np.float64(z >> np.uint64(11)) + 0.5) * (1.0 / 9007199254740992.0)
+
+
+@nb.njit(cache=True, inline="always")
+def hash_normal(seed, a, b, c):
+    """Standard normal (Box-Muller) from the seed and three counters."""
+    u1 = hash_uniform(seed, a, b, 2 * c)
+    u2 = hash_uniform(seed, a, b, 2 * c + 1)
+    return np.sqrt(-2.0 * np.log(u1)) * np.cos(2.0 * np.pi * u2)
+
+
+def seed_from(rng: np.random.Generator) -> int:
+    """A 63-bit seed for the hash draws, taken from ``rng``."""
+    return int(rng.integers(0, 2**63 - 1))

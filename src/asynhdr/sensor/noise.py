@@ -1,0 +1,261 @@
+"""Events that do not come from the signal, and what the readout does to the stream.
+
+- Background activity: leak events (ON, rate ``leak_rate_hz``, independent of light)
+  and shot-noise events (ON or OFF with equal probability, rate ``shot_noise_rate_hz``
+  in the dark, falling linearly to ``shot_noise_bright_factor`` times that at
+  ``shot_noise_full_irradiance``; v2e's model). Each is a Poisson process per pixel:
+  exponential inter-arrival times, drawn exactly (the irradiance-dependent rate by
+  thinning a process at the dark rate). Noise events are added to the stream; they do
+  not move the pixel's comparator reference (IEBCS's model).
+- Hot pixels fire ON and OFF events at ``hot_pixel_rate_hz``; dead pixels fire nothing.
+  Both sets are frozen per sensor.
+- The arbiter: the whole array shares one readout that serves at most
+  ``max_event_rate_hz`` events per second. Events queue (``delay``: timestamps move
+  later) or are lost when the queue is full (``drop``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+
+from asynhdr.events import EVENT_DTYPE
+from asynhdr.sensor.params import SensorParams
+
+__all__ = [
+    "ArbiterStats",
+    "PixelDefects",
+    "apply_arbiter",
+    "background_events",
+    "draw_defects",
+    "merge_sorted",
+    "poisson_times",
+]
+
+
+@dataclass(frozen=True)
+class PixelDefects:
+    """Frozen per-sensor defects: flat pixel indices of hot and dead pixels."""
+
+    hot: np.ndarray
+    dead: np.ndarray
+
+
+def draw_defects(sensor: SensorParams, *, n_pixels: int,
+                 rng: np.random.Generator) -> PixelDefects:
+    """Choose hot and dead pixels (disjoint), ``round(fraction * n_pixels)`` of each."""
+    n_hot = round(sensor.hot_pixel_fraction * n_pixels) if sensor.hot_pixel_rate_hz > 0 \
+        else 0
+    n_dead = round(sensor.dead_pixel_fraction * n_pixels)
+    pick = rng.permutation(n_pixels)[: n_hot + n_dead] if n_hot + n_dead else np.zeros(0, int)
+    return PixelDefects(hot=np.sort(pick[:n_hot]).astype(np.int64),
+                        dead=np.sort(pick[n_hot:]).astype(np.int64))
+
+
+def poisson_times(rate_hz: np.ndarray, *, duration_us: float,
+                  rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """A Poisson process per pixel over ``[0, duration_us)``.
+
+    Returns ``(pixel_index, t_us)`` (float64 µs, sorted by pixel then time). Inter-arrival
+    times are exponential with mean ``1e6 / rate_hz``: events are the partial sums of
+    exponential draws, kept while below ``duration_us``.
+    """
+    rate = np.asarray(rate_hz, dtype=np.float64)
+    mean_us = np.where(rate > 0, 1e6 / np.maximum(rate, 1e-300), np.inf)
+    expected = rate * duration_us * 1e-6
+    # draw enough gaps for nearly every pixel in one go, then top up the rest
+    n_gaps = np.ceil(expected + 6.0 * np.sqrt(expected) + 3.0).astype(np.int64)
+    n_gaps[rate <= 0] = 0
+    pix_out: list[np.ndarray] = []
+    t_out: list[np.ndarray] = []
+    todo = np.flatnonzero(n_gaps > 0)
+    start = np.zeros(rate.size)
+    while todo.size:
+        k = n_gaps[todo]
+        owner = np.repeat(todo, k)
+        gaps = rng.exponential(1.0, owner.size) * mean_us[owner]
+        # partial sums per pixel
+        seg_start = np.concatenate(([0], np.cumsum(k)[:-1]))
+        cs = np.cumsum(gaps)
+        base = np.repeat(cs[seg_start] - gaps[seg_start], k)
+        t = cs - base + np.repeat(start[todo], k)
+        keep = t < duration_us
+        pix_out.append(owner[keep])
+        t_out.append(t[keep])
+        last = t[seg_start + k - 1]
+        unfinished = last < duration_us
+        start[todo[unfinished]] = last[unfinished]
+        todo = todo[unfinished]
+    if not pix_out:
+        return np.zeros(0, np.int64), np.zeros(0, np.float64)
+    pix = np.concatenate(pix_out)
+    t = np.concatenate(t_out)
+    order = np.lexsort((t, pix))
+    return pix[order], t[order]
+
+
+def background_events(
+    sensor: SensorParams,
+    *,
+    irradiance_at: object,
+    n_pixels: int,
+    width: int,
+    t_start_us: int,
+    duration_us: float,
+    defects: PixelDefects,
+    rng: np.random.Generator,
+) -> np.ndarray:
+    """Leak, shot-noise and hot-pixel events over ``[t_start, t_start + duration)``.
+
+    ``irradiance_at(pixel_index, t_offset_us) -> irradiance`` gives the sensor
+    irradiance for the shot-noise rate. Returns events sorted by time.
+    """
+    parts_p: list[np.ndarray] = []
+    parts_t: list[np.ndarray] = []
+    parts_pol: list[np.ndarray] = []
+    if sensor.leak_rate_hz > 0:
+        pix, t = poisson_times(np.full(n_pixels, sensor.leak_rate_hz),
+                               duration_us=duration_us, rng=rng)
+        parts_p.append(pix)
+        parts_t.append(t)
+        parts_pol.append(np.ones(pix.size, np.int8))
+    if sensor.shot_noise_rate_hz > 0:
+        pix, t = poisson_times(np.full(n_pixels, sensor.shot_noise_rate_hz),
+                               duration_us=duration_us, rng=rng)
+        if pix.size:
+            irr = np.asarray(irradiance_at(pix, t), dtype=np.float64)  # type: ignore[operator]
+            frac = np.minimum(irr / sensor.shot_noise_full_irradiance, 1.0)
+            factor = 1.0 + (sensor.shot_noise_bright_factor - 1.0) * frac
+            keep = rng.random(pix.size) < factor
+            pix, t = pix[keep], t[keep]
+        parts_p.append(pix)
+        parts_t.append(t)
+        parts_pol.append(np.where(rng.random(pix.size) < 0.5, 1, -1).astype(np.int8))
+    if defects.hot.size and sensor.hot_pixel_rate_hz > 0:
+        pix, t = poisson_times(np.full(defects.hot.size, sensor.hot_pixel_rate_hz),
+                               duration_us=duration_us, rng=rng)
+        parts_p.append(defects.hot[pix])
+        parts_t.append(t)
+        parts_pol.append(np.where(rng.random(pix.size) < 0.5, 1, -1).astype(np.int8))
+    if not parts_p:
+        return np.zeros(0, EVENT_DTYPE)
+    pix = np.concatenate(parts_p)
+    t = np.concatenate(parts_t)
+    pol = np.concatenate(parts_pol)
+    ti = t_start_us + np.floor(t).astype(np.int64)
+    order = np.argsort(ti, kind="stable")
+    out = np.empty(pix.size, EVENT_DTYPE)
+    out["x"] = (pix % width)[order]
+    out["y"] = (pix // width)[order]
+    out["p"] = pol[order]
+    out["t"] = ti[order]
+    return out
+
+
+@nb.njit(cache=True)
+def _merge(a, b, out):
+    i = 0
+    j = 0
+    k = 0
+    while i < a.shape[0] and j < b.shape[0]:
+        if b[j].t < a[i].t:
+            out[k] = b[j]
+            j += 1
+        else:
+            out[k] = a[i]
+            i += 1
+        k += 1
+    while i < a.shape[0]:
+        out[k] = a[i]
+        i += 1
+        k += 1
+    while j < b.shape[0]:
+        out[k] = b[j]
+        j += 1
+        k += 1
+
+
+def merge_sorted(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Merge two time-sorted event arrays (stable: ``a`` first among equal times)."""
+    if b.size == 0:
+        return a
+    if a.size == 0:
+        return b
+    out = np.empty(a.size + b.size, EVENT_DTYPE)
+    _merge(a, b, out)
+    return out
+
+
+@dataclass
+class ArbiterStats:
+    """What the readout did: emitted = delivered + dropped; delayed counts delivered
+    events whose timestamp moved."""
+
+    emitted: int = 0
+    delivered: int = 0
+    delayed: int = 0
+    dropped: int = 0
+    max_delay_us: float = 0.0
+
+
+@nb.njit(cache=True)
+def _arbiter(t, service_us, drop, buffer, free_at, keep, t_out):
+    delayed = 0
+    dropped = 0
+    max_delay = 0.0
+    for i in range(t.shape[0]):
+        ti = float(t[i])
+        if drop and (free_at - ti) > buffer * service_us:
+            keep[i] = False
+            dropped += 1
+            continue
+        start = ti if ti > free_at else free_at
+        free_at = start + service_us
+        keep[i] = True
+        ts = np.int64(np.floor(start))
+        t_out[i] = ts
+        if ts > t[i]:
+            delayed += 1
+            if start - ti > max_delay:
+                max_delay = start - ti
+    return free_at, delayed, dropped, max_delay
+
+
+class Arbiter:
+    """The shared readout, with its queue carried from chunk to chunk."""
+
+    def __init__(self, max_event_rate_hz: float, *, mode: str = "delay",
+                 buffer_events: int = 1024) -> None:
+        self.service_us = 1e6 / max_event_rate_hz
+        self.drop = mode == "drop"
+        self.buffer = float(buffer_events)
+        self.free_at = -1e300
+        self.stats = ArbiterStats()
+
+    def __call__(self, events: np.ndarray) -> np.ndarray:
+        keep = np.empty(events.size, np.bool_)
+        t_out = np.empty(events.size, np.int64)
+        self.free_at, delayed, dropped, max_delay = _arbiter(
+            events["t"], self.service_us, self.drop, self.buffer, self.free_at, keep, t_out)
+        out = events[keep]
+        out["t"] = t_out[keep]
+        s = self.stats
+        s.emitted += int(events.size)
+        s.delivered += int(out.size)
+        s.delayed += int(delayed)
+        s.dropped += int(dropped)
+        s.max_delay_us = max(s.max_delay_us, float(max_delay))
+        return out
+
+
+def apply_arbiter(events: np.ndarray, sensor: SensorParams) -> tuple[np.ndarray, ArbiterStats]:
+    """Pass time-sorted events through the readout of ``sensor`` (all at once)."""
+    if sensor.max_event_rate_hz <= 0:
+        n = int(events.size)
+        return events, ArbiterStats(emitted=n, delivered=n)
+    arb = Arbiter(sensor.max_event_rate_hz, mode=sensor.arbiter,
+                  buffer_events=sensor.arbiter_buffer_events)
+    out = arb(events)
+    return out, arb.stats
