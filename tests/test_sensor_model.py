@@ -1,0 +1,192 @@
+"""The pixel's non-idealities against answers from theory."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from asynhdr.events import EVENT_DTYPE
+from asynhdr.rig import Rig
+from asynhdr.sensor.noise import apply_arbiter, poisson_times
+from asynhdr.sensor.params import PRESETS, SensorParams
+from asynhdr.simulate import simulate
+
+QUIET = SensorParams(threshold_sigma=0.0)
+
+
+def per_pixel(ev: np.ndarray, width: int) -> dict[int, np.ndarray]:
+    pix = ev["y"].astype(np.int64) * width + ev["x"]
+    order = np.argsort(pix, kind="stable")
+    pix, ev = pix[order], ev[order]
+    cuts = np.flatnonzero(np.diff(pix)) + 1
+    return {int(g[0]): e for g, e in zip(np.split(pix, cuts), np.split(ev, cuts), strict=True)}
+
+
+def test_refractory_no_two_events_closer_and_fewer_events() -> None:
+    radiance = np.geomspace(20.0, 1e5, 40).reshape(5, 8)
+    rig = Rig(period_us=20_000)
+    free = simulate(radiance, rig=rig, sensor=QUIET, n_cycles=2)
+    refr = simulate(radiance, rig=rig, sensor=QUIET.with_(refractory_us=300.0), n_cycles=2)
+    for _, e in per_pixel(refr.events, 8).items():
+        assert np.all(np.diff(e["t"]) >= 300 - 1)  # 1 µs: timestamps are floored
+    # bright pixels fire faster than every 300 µs early in the ramp: the period must bite
+    assert refr.events.size < free.events.size
+    # the pixel, blind while the irradiance keeps rising, takes its new reference at the
+    # end of the period, so its next event comes one threshold above that level: for the
+    # brightest pixel the first two ON times must differ by more than 300 µs
+    e = per_pixel(refr.events, 8)[39]
+    assert e["t"][1] - e["t"][0] > 300
+
+
+def test_refractory_longer_than_cycle_is_an_error() -> None:
+    with pytest.raises(ValueError, match="refractory_us"):
+        simulate(np.ones((2, 2)), rig=Rig(period_us=1000),
+                 sensor=QUIET.with_(refractory_us=2000.0))
+
+
+def test_photoreceptor_lag_is_tau_at_the_event_irradiance() -> None:
+    """Quasi-static low-pass: each event is delayed by tau(I) = tau_ref (I_ref + I_dark) /
+    (I + I_dark) at the irradiance where it fires. The approximation holds while tau
+    changes slowly between events (the bright pixel); a pixel's events never overtake
+    each other (the dark pixel's later events bunch up behind its first)."""
+    rig = Rig(period_us=50_000, t1_shape="linear", t2_shape="linear", t2_stop=0.5,
+              l_const=10.0, k_lens=1.0)
+    radiance = np.array([[300.0, 3e6]])
+    base = simulate(radiance, rig=rig, sensor=QUIET, n_cycles=1)
+    lp_sensor = QUIET.with_(cutoff_hz=500.0, cutoff_irradiance=1000.0, dark_irradiance=0.5)
+    lagged = simulate(radiance, rig=rig, sensor=lp_sensor, n_cycles=1)
+    c = QUIET.threshold_on
+    for x in (0, 1):
+        b = per_pixel(base.events, 2)[x]
+        g = per_pixel(lagged.events, 2)[x]
+        assert b.size == g.size
+        e0 = 1e-3 * radiance[0, x] + 1.0 * 10.0
+        on = b["p"] == 1
+        levels = e0 * np.exp(c * np.arange(1, on.sum() + 1))  # irradiance at each ON
+        tau = 1e6 / (2 * math.pi * 500.0) * (1000.0 + 0.5) / (levels + 0.5)
+        delay = (g["t"][on] - b["t"][on]).astype(float)
+        expected = np.minimum(tau, lp_sensor.tau_max_us)
+        # quasi-static where tau changes by under 2 % of the time between events
+        gap = np.diff(b["t"][on]).astype(float)
+        slow = np.concatenate(([True], np.abs(np.diff(expected)) < 0.02 * gap))
+        assert slow.sum() >= (5 if x == 1 else 1)
+        assert np.all(np.abs(delay[slow] - expected[slow]) <= 1.0)
+        assert abs(delay[0] - expected[0]) <= 1.0
+        assert np.all(np.diff(g["t"]) >= 0)
+    # darker pixels lag more
+    d_dark = per_pixel(lagged.events, 2)[0]["t"][0] - per_pixel(base.events, 2)[0]["t"][0]
+    d_bright = per_pixel(lagged.events, 2)[1]["t"][0] - per_pixel(base.events, 2)[1]["t"][0]
+    assert d_dark > d_bright
+
+
+def test_background_rate_and_exponential_inter_arrivals() -> None:
+    rng = np.random.default_rng(5)
+    rate_hz, n_pix, duration_us = 0.4, 2_000, 1e9  # 2e6 pixel-seconds
+    pix, t = poisson_times(np.full(n_pix, rate_hz), duration_us=duration_us, rng=rng)
+    expected = rate_hz * n_pix * duration_us * 1e-6
+    assert abs(pix.size - expected) < 3 * math.sqrt(expected)
+    gaps = np.concatenate([np.diff(t[pix == p]) for p in range(200)])
+    res = stats.kstest(gaps, "expon", args=(0, 1e6 / rate_hz))
+    assert res.pvalue > 1e-3
+    # and a wrong rate is rejected by the same test
+    assert stats.kstest(gaps, "expon", args=(0, 0.8e6 / rate_hz)).pvalue < 1e-3
+
+
+def test_leak_events_through_the_simulator_match_their_rate() -> None:
+    # a uniform field at L_const with a flat reference: no signal, only leak events
+    rig = Rig(period_us=100_000, t1_shape="linear", t2_shape="linear", t2_stop=0.0,
+              contrast_ratio_1=1.0, contrast_ratio_2=1.0)
+    sensor = SensorParams(threshold_sigma=0.0, leak_rate_hz=2.0)
+    n_cycles = 50
+    rec = simulate(np.full((40, 50), 5.0), rig=rig, sensor=sensor, n_cycles=n_cycles, rng=3)
+    assert rec.metadata["counts"]["signal"] == 0
+    pixel_s = 40 * 50 * n_cycles * 0.1
+    expected = 2.0 * pixel_s
+    assert abs(rec.events.size - expected) < 3 * math.sqrt(expected)
+    assert np.all(rec.events["p"] == 1)
+
+
+def test_hot_pixels_fire_at_their_rate_and_dead_pixels_never() -> None:
+    rig = Rig(period_us=100_000, t2_stop=0.0, contrast_ratio_1=1.0, contrast_ratio_2=1.0)
+    sensor = SensorParams(threshold_sigma=0.0, hot_pixel_fraction=0.01, hot_pixel_rate_hz=50.0,
+                          dead_pixel_fraction=0.05)
+    n_cycles = 20
+    rec = simulate(np.full((50, 80), 5.0), rig=rig, sensor=sensor, n_cycles=n_cycles, rng=1,
+                   sensor_seed=9)
+    assert rec.metadata["counts"]["hot_pixels"] == 40
+    expected = 40 * 50.0 * n_cycles * 0.1
+    assert abs(rec.events.size - expected) < 3 * math.sqrt(expected)
+    assert len(per_pixel(rec.events, 80)) <= 40
+
+    # a bright ramp: every live pixel fires, dead ones never
+    live = simulate(np.full((50, 80), 500.0), rig=Rig(period_us=20_000),
+                    sensor=sensor.with_(hot_pixel_fraction=0.0), n_cycles=1, sensor_seed=9)
+    fired = per_pixel(live.events, 80)
+    n_dead = live.metadata["counts"]["dead_pixels"]
+    assert n_dead == 200
+    assert len(fired) == 50 * 80 - n_dead
+
+
+def _burst(n: int, t_us: int) -> np.ndarray:
+    ev = np.zeros(n, EVENT_DTYPE)
+    ev["t"] = t_us
+    ev["p"] = 1
+    return ev
+
+
+@pytest.mark.parametrize("mode", ["delay", "drop"])
+def test_arbiter_rate_limit_and_accounting(mode: str) -> None:
+    rng = np.random.default_rng(0)
+    # bursts: every pixel at once, as the panels make them
+    ev = np.sort(np.concatenate([_burst(5_000, 1_000), _burst(3_000, 4_000),
+                                 _burst(10, 50_000)]), order="t")
+    ev["x"] = rng.integers(0, 100, ev.size)
+    rate_hz = 1e6  # one event per µs
+    sensor = SensorParams(max_event_rate_hz=rate_hz, arbiter=mode, arbiter_buffer_events=500)
+    out, st = apply_arbiter(ev, sensor)
+    assert st.emitted == ev.size
+    assert st.delivered + st.dropped == st.emitted
+    assert out.size == st.delivered
+    assert np.all(np.diff(out["t"]) >= 0)
+    # no window of W µs carries more than W * rate + 1 events
+    t = out["t"]
+    for w in (1, 10, 100, 1000):
+        counts = np.searchsorted(t, t + w, side="left") - np.arange(t.size)
+        assert counts.max() <= w * rate_hz * 1e-6 + 1
+    if mode == "delay":
+        assert st.dropped == 0 and st.delayed > 0
+        assert out.size == ev.size
+    else:
+        assert st.dropped > 0
+        assert out.size < ev.size
+
+
+@pytest.mark.parametrize("preset", sorted(PRESETS))
+def test_every_preset_same_seed_same_events(preset: str) -> None:
+    radiance = np.geomspace(0.1, 1e5, 600).reshape(20, 30)
+    rig = Rig(period_us=10_000)
+    a = simulate(radiance, rig=rig, sensor=preset, n_cycles=2, rng=11, sensor_seed=4)
+    b = simulate(radiance, rig=rig, sensor=preset, n_cycles=2, rng=11, sensor_seed=4)
+    assert a.events.tobytes() == b.events.tobytes()
+    assert a.events.size > 0
+    assert np.all(np.diff(a.events["t"]) >= 0)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"leak_rate_hz": -1.0}, "leak_rate_hz"),
+        ({"shot_noise_rate_hz": -0.1}, "shot_noise_rate_hz"),
+        ({"refractory_us": -5.0}, "refractory_us"),
+        ({"hot_pixel_fraction": 1.5}, "hot_pixel_fraction"),
+        ({"max_event_rate_hz": float("inf")}, "max_event_rate_hz"),
+        ({"arbiter": "queue"}, "arbiter"),
+        ({"cutoff_hz": -3.0}, "cutoff_hz"),
+    ],
+)
+def test_bad_sensor_parameters_name_the_parameter(kwargs, match) -> None:
+    with pytest.raises(ValueError, match=match):
+        SensorParams(**kwargs)
