@@ -85,7 +85,7 @@ def test_photoreceptor_lag_is_tau_at_the_event_irradiance() -> None:
 def test_background_rate_and_exponential_inter_arrivals() -> None:
     rng = np.random.default_rng(5)
     rate_hz, n_pix, duration_us = 0.4, 2_000, 1e9  # 2e6 pixel-seconds
-    pix, t = poisson_times(np.full(n_pix, rate_hz), duration_us=duration_us, rng=rng)
+    pix, t = poisson_times(rate_hz, n_pixels=n_pix, duration_us=duration_us, rng=rng)
     expected = rate_hz * n_pix * duration_us * 1e-6
     assert abs(pix.size - expected) < 3 * math.sqrt(expected)
     gaps = np.concatenate([np.diff(t[pix == p]) for p in range(200)])

@@ -57,6 +57,7 @@ __all__ = [
     "METHODS",
     "WEIGHTINGS",
     "CycleWindows",
+    "first_on_phase",
     "reconstruct",
     "weight",
     "weighted_sums",
@@ -135,26 +136,34 @@ class CycleWindows:
 
 
 @nb.njit(cache=True)
-def _sums_kernel(x, y, p, t, starts, window_us, width, code, k, on_only, out):
+def _sums_kernel(x, y, p, t, starts, window_us, width, table, on_only, out):
+    """Scatter-add ``table[t - start] * p`` per cycle and pixel (events sorted by time).
+
+    ``table`` holds the weight of every whole-µs offset in the window. Returns the index
+    of the first event whose time steps back, or -1 when the events are sorted.
+    """
     ncyc = starts.shape[0]
     c = 0
-    inv = 1.0 / window_us
+    n_tab = table.shape[0]
+    prev = t[0] if t.shape[0] else 0
     for i in range(t.shape[0]):
         ti = t[i]
+        if ti < prev:
+            return i
+        prev = ti
         while c + 1 < ncyc and ti >= starts[c + 1]:
             c += 1
         dt = ti - starts[c]
-        if dt < 0:
-            continue
-        u = dt * inv
-        if u >= 1.0:
+        if dt < 0 or dt >= n_tab or dt >= window_us:
             continue
         pol = p[i]
+        j = np.int64(y[i]) * width + x[i]
         if on_only:
             if pol > 0:
-                out[c, np.int64(y[i]) * width + x[i]] += 1.0
+                out[c, j] += 1.0
         else:
-            out[c, np.int64(y[i]) * width + x[i]] += _w(code, u, k) * pol
+            out[c, j] += table[dt] * pol
+    return -1
 
 
 @nb.njit(cache=True)
@@ -193,16 +202,25 @@ def weighted_sums(
 ) -> np.ndarray:
     """``S = sum_i f(u_i) p_i`` per cycle and pixel, float64 ``(n_cycles, height, width)``.
 
-    ``method`` is a weighting name, or ``"count"`` (the number of ON events).
+    ``method`` is a weighting name, or ``"count"`` (the number of ON events). Times are
+    whole µs, so ``f`` is tabulated once over the window's offsets and each event costs
+    one look-up and one add. Unsorted events are sorted stably first (and reported).
     """
     if method not in WEIGHTINGS and method != "count":
         raise ValueError(f"unknown weighting {method!r}; expected one of "
                          f"{[*WEIGHTINGS, 'count']}")
-    ev = _sorted_events(rec)
+    n_tab = math.ceil(windows.window_us)
+    table = (np.ones(n_tab) if method == "count"
+             else weight(method, np.arange(n_tab) / windows.window_us, k=k))
     out = np.zeros((windows.n_cycles, rec.height * rec.width), dtype=np.float64)
-    _sums_kernel(ev["x"], ev["y"], ev["p"], ev["t"], windows.start_us,
-                 float(windows.window_us), rec.width, WEIGHTINGS.get(method, 0), float(k),
-                 method == "count", out)
+    ev = rec.events
+    for _ in range(2):
+        bad = _sums_kernel(ev["x"], ev["y"], ev["p"], ev["t"], windows.start_us,
+                           float(windows.window_us), rec.width, table, method == "count", out)
+        if bad < 0:
+            break
+        out[:] = 0.0
+        ev = _sorted_events(rec)
     return out.reshape(windows.n_cycles, rec.height, rec.width)
 
 

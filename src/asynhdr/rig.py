@@ -111,7 +111,8 @@ def cycle_waveform(
 ) -> Waveform:
     """One modulation cycle: a ramp from ``start`` to ``stop``, then a linear return.
 
-    Over phase ``[0, ramp_fraction]`` the transmittance follows ``shape``:
+    Over phase ``[0, ramp_fraction]`` the transmittance follows ``shape`` (sampled on
+    ``n_knots`` intervals; a linear ramp needs only its two ends):
     ``linear``: ``T = start + (stop - start) s``; ``exponential`` (log-linear):
     ``T = start (stop / start)^s``, with ``s = u / ramp_fraction``. Over the first half
     of ``[ramp_fraction, 1]`` it returns linearly to ``start`` and holds there for the
@@ -122,7 +123,8 @@ def cycle_waveform(
         raise ValueError(f"ramp_fraction must be in (0, 1], got {ramp_fraction}")
     if n_knots < 2:
         raise ValueError(f"n_knots must be >= 2, got {n_knots}")
-    s = np.linspace(0.0, 1.0, n_knots + 1)
+    # a straight ramp is exact with its two end knots; curved ones need the table
+    s = np.linspace(0.0, 1.0, (1 if shape == "linear" else n_knots) + 1)
     vals = _ramp_values(shape, start, stop, s)
     phase = s * ramp_fraction
     if ramp_fraction < 1.0:

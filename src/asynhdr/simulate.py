@@ -229,8 +229,9 @@ def simulate(
     events = _concat_sorted(chunks)
     n_dead = 0
     if defects.dead.size:
-        pix = events["y"].astype(np.int64) * width + events["x"]
-        alive = ~np.isin(pix, defects.dead)
+        dead = np.zeros(width * height, dtype=bool)
+        dead[defects.dead] = True
+        alive = ~dead[events["y"].astype(np.int64) * width + events["x"]]
         n_dead = int(events.size - alive.sum())
         events = events[alive]
     step = sensor.timestamp_resolution_us

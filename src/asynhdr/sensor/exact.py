@@ -64,7 +64,9 @@ def cycle_pieces(t1: np.ndarray, t2: np.ndarray) -> np.ndarray:
         else:
             r_prev = -d2[j - 1] / d1[j - 1]
             r_cur = -d2[j] / d1[j]
-            step = sign(r_cur - r_prev)
+            # rounding in the knots makes r of a straight ramp wobble by ~1e-16: ignore
+            tol = 1e-9 * max(abs(r_prev), abs(r_cur), 1e-300)
+            step = sign(r_cur - r_prev) if abs(r_cur - r_prev) > tol else 0
             if step != 0:
                 if direction == 0:
                     direction = step

@@ -54,46 +54,26 @@ def draw_defects(sensor: SensorParams, *, n_pixels: int,
                         dead=np.sort(pick[n_hot:]).astype(np.int64))
 
 
-def poisson_times(rate_hz: np.ndarray, *, duration_us: float,
+def poisson_times(rate_hz: float, *, n_pixels: int, duration_us: float,
                   rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """A Poisson process per pixel over ``[0, duration_us)``.
+    """Independent Poisson processes of ``rate_hz`` on ``n_pixels`` pixels over
+    ``[0, duration_us)``.
 
-    Returns ``(pixel_index, t_us)`` (float64 µs, sorted by pixel then time). Inter-arrival
-    times are exponential with mean ``1e6 / rate_hz``: events are the partial sums of
-    exponential draws, kept while below ``duration_us``.
+    Returns ``(pixel_index, t_us)`` (float64 µs) sorted by pixel, then time. The pooled
+    count is Poisson with mean ``rate * duration * n_pixels``; each event falls on a
+    pixel uniformly and at a uniform time. By the splitting property of Poisson
+    processes this is exactly a Poisson process of ``rate_hz`` per pixel: exponential
+    inter-arrival times of mean ``1e6 / rate_hz`` µs. Cost grows with the number of
+    events, not pixels.
     """
-    rate = np.asarray(rate_hz, dtype=np.float64)
-    mean_us = np.where(rate > 0, 1e6 / np.maximum(rate, 1e-300), np.inf)
-    expected = rate * duration_us * 1e-6
-    # draw enough gaps for nearly every pixel in one go, then top up the rest
-    n_gaps = np.ceil(expected + 6.0 * np.sqrt(expected) + 3.0).astype(np.int64)
-    n_gaps[rate <= 0] = 0
-    pix_out: list[np.ndarray] = []
-    t_out: list[np.ndarray] = []
-    todo = np.flatnonzero(n_gaps > 0)
-    start = np.zeros(rate.size)
-    while todo.size:
-        k = n_gaps[todo]
-        owner = np.repeat(todo, k)
-        gaps = rng.exponential(1.0, owner.size) * mean_us[owner]
-        # partial sums per pixel
-        seg_start = np.concatenate(([0], np.cumsum(k)[:-1]))
-        cs = np.cumsum(gaps)
-        base = np.repeat(cs[seg_start] - gaps[seg_start], k)
-        t = cs - base + np.repeat(start[todo], k)
-        keep = t < duration_us
-        pix_out.append(owner[keep])
-        t_out.append(t[keep])
-        last = t[seg_start + k - 1]
-        unfinished = last < duration_us
-        start[todo[unfinished]] = last[unfinished]
-        todo = todo[unfinished]
-    if not pix_out:
-        return np.zeros(0, np.int64), np.zeros(0, np.float64)
-    pix = np.concatenate(pix_out)
-    t = np.concatenate(t_out)
+    if rate_hz < 0 or n_pixels < 0 or duration_us < 0:
+        raise ValueError("poisson_times: rate_hz, n_pixels and duration_us must be >= 0")
+    mean = rate_hz * duration_us * 1e-6 * n_pixels
+    n = int(rng.poisson(mean)) if mean > 0 else 0
+    pix = rng.integers(0, n_pixels, n) if n else np.zeros(0, np.int64)
+    t = rng.random(n) * duration_us
     order = np.lexsort((t, pix))
-    return pix[order], t[order]
+    return pix[order].astype(np.int64), t[order]
 
 
 def background_events(
@@ -116,13 +96,13 @@ def background_events(
     parts_t: list[np.ndarray] = []
     parts_pol: list[np.ndarray] = []
     if sensor.leak_rate_hz > 0:
-        pix, t = poisson_times(np.full(n_pixels, sensor.leak_rate_hz),
+        pix, t = poisson_times(sensor.leak_rate_hz, n_pixels=n_pixels,
                                duration_us=duration_us, rng=rng)
         parts_p.append(pix)
         parts_t.append(t)
         parts_pol.append(np.ones(pix.size, np.int8))
     if sensor.shot_noise_rate_hz > 0:
-        pix, t = poisson_times(np.full(n_pixels, sensor.shot_noise_rate_hz),
+        pix, t = poisson_times(sensor.shot_noise_rate_hz, n_pixels=n_pixels,
                                duration_us=duration_us, rng=rng)
         if pix.size:
             irr = np.asarray(irradiance_at(pix, t), dtype=np.float64)  # type: ignore[operator]
@@ -134,7 +114,7 @@ def background_events(
         parts_t.append(t)
         parts_pol.append(np.where(rng.random(pix.size) < 0.5, 1, -1).astype(np.int8))
     if defects.hot.size and sensor.hot_pixel_rate_hz > 0:
-        pix, t = poisson_times(np.full(defects.hot.size, sensor.hot_pixel_rate_hz),
+        pix, t = poisson_times(sensor.hot_pixel_rate_hz, n_pixels=int(defects.hot.size),
                                duration_us=duration_us, rng=rng)
         parts_p.append(defects.hot[pix])
         parts_t.append(t)

@@ -1,0 +1,195 @@
+"""``asynhdr info FILE``: what a recording holds, and its modulation cycles."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import typer
+from rich.console import Console
+from rich.progress import Progress, SpinnerColumn, TextColumn
+from rich.table import Table
+
+from asynhdr._atomic import atomic_path
+from asynhdr.cli import app
+from asynhdr.io import RecordingScan, scan_recording
+from asynhdr.segment import Cycles, cycles_from_rate, cycles_from_triggers
+
+__all__ = ["detect_cycles", "info", "save_rate_plot"]
+
+logger = logging.getLogger(__name__)
+
+RATE_BIN_US = 100
+"""Bin width (µs) of the event-rate histogram used to find cycles without triggers."""
+
+MIN_CONFIDENCE = 0.2
+"""Cycles found from the event rate with a lower confidence are not reported."""
+
+
+def detect_cycles(scan: RecordingScan, *, period_us: float | None = None
+                  ) -> tuple[Cycles | None, str]:
+    """Cycles from the trigger edges when there are at least two rising edges on a
+    channel (the channel with most rising edges), else from the event rate.
+
+    Returns the cycles (None when none could be found, or the event rate gives a
+    confidence below :data:`MIN_CONFIDENCE`) and a sentence saying how.
+    """
+    tr = scan.triggers
+    notes = []
+    rising = tr[tr["rising"]] if tr.size else tr
+    if rising.size:
+        ids, counts = np.unique(rising["id"], return_counts=True)
+        ch = int(ids[int(np.argmax(counts))])
+        try:
+            c = cycles_from_triggers(tr, period_us=period_us, channel=ch)
+            how = f"from rising trigger edges on channel {ch}"
+            if ids.size > 1:
+                how += f" (of channels {ids.tolist()})"
+            return c, how
+        except ValueError as exc:
+            notes.append(f"triggers not usable: {exc}")
+    tail = f" ({'; '.join(notes)})" if notes else ""
+    if scan.rate_counts.size == 0:
+        return None, "no events" + tail
+    try:
+        c = cycles_from_rate(scan.rate_counts, bin_us=scan.rate_bin_us,
+                             t0_us=scan.rate_t0_us, period_us=period_us)
+    except ValueError as exc:
+        return None, f"none found from the event rate: {exc}" + tail
+    if c.confidence < MIN_CONFIDENCE:
+        return None, (f"no periodic bursts in the event rate (best guess: period "
+                      f"{c.period_us:.1f} µs, confidence {c.confidence:.2f})" + tail)
+    return c, "from the event-rate envelope" + tail
+
+
+def save_rate_plot(path: Path, scan: RecordingScan, cycles: Cycles | None) -> None:
+    """Event rate over time (1 ms bins) with cycle starts and trigger edges, as PNG
+    (written atomically)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    counts = scan.rate_counts.astype(np.float64)
+    bin_us = scan.rate_bin_us
+    group = max(1, 1000 // bin_us) if bin_us < 1000 else 1
+    if group > 1:
+        pad = (-counts.size) % group
+        counts = np.concatenate([counts, np.zeros(pad)]).reshape(-1, group).sum(axis=1)
+    width_us = bin_us * group
+    t0 = scan.rate_t0_us
+    t_s = (np.arange(counts.size) * width_us) / 1e6
+    fig = Figure(figsize=(10, 4), dpi=110)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 1, 1)
+    ax.plot(t_s, counts * (1e6 / width_us) / 1e6, lw=0.7, color="k", label="event rate")
+    if cycles is not None and len(cycles) and len(cycles) <= 500:
+        for s in cycles.start_us:
+            ax.axvline((int(s) - t0) / 1e6, color="tab:blue", lw=0.5, alpha=0.6)
+        ax.plot([], [], color="tab:blue", lw=0.5, label=f"cycle starts ({cycles.source})")
+    tr = scan.triggers
+    if tr.size and tr.size <= 2000:
+        for t, r in zip(tr["t"], tr["rising"], strict=True):
+            ax.axvline((int(t) - t0) / 1e6, color="tab:red" if r else "tab:orange", lw=0.8,
+                       ls="--")
+        ax.plot([], [], color="tab:red", ls="--", lw=0.8,
+                label="trigger edges (red rising, orange falling)")
+    ax.set_xlabel(f"time since {t0} µs [s]")
+    ax.set_ylabel(f"event rate [Mev/s] ({width_us / 1000:g} ms bins)")
+    ax.set_title(Path(scan.info["path"]).name)
+    ax.legend(loc="upper right", fontsize=8)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+
+
+def _fmt_rate(hz: float | None) -> str:
+    if hz is None:
+        return "-"
+    if hz >= 1e6:
+        return f"{hz / 1e6:.3g} Mev/s"
+    if hz >= 1e3:
+        return f"{hz / 1e3:.3g} kev/s"
+    return f"{hz:.3g} ev/s"
+
+
+def _table(info: dict[str, Any], cycles: Cycles | None, how: str) -> Table:
+    t = Table(show_header=False, box=None, pad_edge=False)
+    t.add_column(style="bold cyan", no_wrap=True)
+    t.add_column()
+    t.add_row("file", info["path"])
+    t.add_row("format", f"{info['format']} — {info['format_description']}")
+    t.add_row("sensor", info["sensor"] or "-")
+    t.add_row("geometry", f"{info['width']} x {info['height']} (width x height, "
+                          f"{info['geometry_source']})")
+    t.add_row("events", f"{info['events']:,} ({info['on_events']:,} ON, "
+                        f"{info['off_events']:,} OFF)")
+    if info["events"]:
+        order = "sorted" if info["time_sorted"] else (
+            f"not sorted: {info['backward_steps']:,} backward steps")
+        t.add_row("time", f"{info['first_t_us']} .. {info['last_t_us']} µs (file order; {order})")
+        t.add_row("duration", f"{info['duration_us'] / 1e6:.6f} s")
+    t.add_row("mean rate", _fmt_rate(info["mean_rate_hz"]))
+    t.add_row("peak rate", f"{_fmt_rate(info['peak_rate_hz'])} "
+                           f"({info['peak_rate_bin_us'] / 1000:g} ms bins)")
+    edges = info["trigger_edges"]
+    t.add_row("trigger edges", ", ".join(f"{k}: {v}" for k, v in edges.items()) or "none")
+    records = info.get("trigger_records")
+    if records is not None:
+        t.add_row("trigger records",
+                  ", ".join(f"{k}: {v}" for k, v in records.items()) or "none")
+    if cycles is None:
+        t.add_row("cycles", f"none ({how})")
+    else:
+        s = cycles.summary()
+        t.add_row("cycles", f"{s['cycles']}, {how}")
+        t.add_row("period", f"{s['period_us']:.3f} µs ({s['frequency_hz']:.4g} Hz)")
+        t.add_row("first start", f"{s['first_start_us']} µs")
+        low = " (low: the recording may not be modulated)" if s["confidence"] < 0.5 else ""
+        t.add_row("confidence", f"{s['confidence']:.2f}{low}")
+        if s["missing"] or s["extra"]:
+            t.add_row("irregular", f"{s['missing']} missing, {s['extra']} extra edges/bursts")
+    return t
+
+
+@app.command("info")
+def info(
+    file: Path = typer.Argument(..., help="Recording: .raw, .dat, .aedat4, .h5, .npz, .txt, .csv"),
+    width: int | None = typer.Option(None, "--width", help="Sensor width (pixels), for files "
+                                     "without geometry."),
+    height: int | None = typer.Option(None, "--height", help="Sensor height (pixels)."),
+    time_unit: str | None = typer.Option(None, "--time-unit", help="Text/HDF5 time unit: us, "
+                                         "ms, s (text: also auto)."),
+    period_us: float | None = typer.Option(None, "--period-us", help="Modulation period "
+                                           "(µs), when known."),
+    plot: Path | None = typer.Option(None, "--plot", help="Save an event-rate plot (PNG)."),
+    as_json: bool = typer.Option(False, "--json", help="Print JSON instead of a table."),
+) -> None:
+    """Describe a recording: format, sensor, geometry, events, rates, triggers, cycles."""
+    err = Console(stderr=True)
+    try:
+        with Progress(SpinnerColumn(), TextColumn("{task.description}"), console=err,
+                      transient=True) as prog:
+            task = prog.add_task(f"reading {file.name}", total=None)
+
+            def progress(n: int) -> None:
+                prog.update(task, description=f"reading {file.name}: {n:,} events")
+
+            scan = scan_recording(file, width=width, height=height, time_unit=time_unit,
+                                  rate_bin_us=RATE_BIN_US, progress=progress)
+        cycles, how = detect_cycles(scan, period_us=period_us)
+        if plot is not None:
+            save_rate_plot(plot, scan, cycles)
+    except (FileNotFoundError, ValueError) as exc:
+        err.print(f"[red]error:[/red] {exc}", highlight=False)
+        raise typer.Exit(code=1) from None
+    if as_json:
+        out = dict(scan.info)
+        out["cycles"] = cycles.summary() if cycles is not None else None
+        out["cycles_how"] = how
+        typer.echo(json.dumps(out, indent=2, default=str))
+    else:
+        Console().print(_table(scan.info, cycles, how))
+    if plot is not None:
+        Console(stderr=True).print(f"event-rate plot: {plot}")
