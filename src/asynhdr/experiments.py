@@ -130,6 +130,7 @@ def run_chart_experiment(
     flat_density: float = DEFAULT_FLAT_DENSITY,
     seed: int = 0,
     sensor_seed: int = 1,
+    engine: str = "exact",
     progress: Progress | None = None,
 ) -> ChartResult:
     """Run the chart experiment.
@@ -137,6 +138,7 @@ def run_chart_experiment(
     The sensor's frozen threshold mismatch is drawn once from ``sensor_seed`` and shared
     by the chart and the flat-field captures (one physical sensor); each capture draws
     its own randomness from ``seed``. Images are measured on the last cycle.
+    ``engine`` picks the simulator's engine (see ``asynhdr.simulate.simulate``).
     """
     rig = rig or Rig()
     sensor = get_preset(sensor) if isinstance(sensor, str) else sensor
@@ -151,7 +153,7 @@ def run_chart_experiment(
         return lambda d, t: progress(stage, d, t)
 
     rec = simulate(scene, rig=rig, sensor=sensor, n_cycles=n_cycles,
-                   rng=np.random.default_rng(seeds[0]), sensor_seed=sensor_seed,
+                   rng=np.random.default_rng(seeds[0]), sensor_seed=sensor_seed, engine=engine,
                    progress=cb("simulate chart"))
     flat = flat_field(width=width, height=height,
                       radiance=illuminance_lux * 10.0 ** (-flat_density), unit="lux")
@@ -159,7 +161,7 @@ def run_chart_experiment(
     for i in range(n_flat):
         caps.append(simulate(flat, rig=rig, sensor=sensor, n_cycles=flat_cycles,
                              rng=np.random.default_rng(seeds[1 + i]),
-                             sensor_seed=sensor_seed))
+                             sensor_seed=sensor_seed, engine=engine))
         if progress is not None:
             progress("flat-field captures", i + 1, n_flat)
     cmap = estimate_cmap(caps, methods=list(WEIGHTINGS), k=k)
@@ -183,7 +185,7 @@ def run_chart_experiment(
         "width": width, "height": height, "n_cycles": n_cycles, "n_flat": n_flat,
         "flat_cycles": flat_cycles, "k": k, "seed": seed, "sensor_seed": sensor_seed,
         "illuminance_lux": illuminance_lux, "flat_density": flat_density,
-        "rig": rig.to_metadata(), "sensor": sensor.to_metadata(),
-        "n_events": int(rec.events.size),
+        "rig": rig.to_metadata(), "sensor": sensor.to_metadata(), "engine": engine,
+        "n_events": int(rec.events.size), "readout": rec.metadata.get("readout"),
     }
     return ChartResult(scene=scene, recording=rec, cmap=cmap, results=results, metadata=meta)

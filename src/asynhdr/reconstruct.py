@@ -253,14 +253,25 @@ def windows_for(
     *,
     window_us: float | None = None,
     period_us: float | None = None,
+    single: bool = False,
 ) -> CycleWindows:
     """Integration windows from the recording's rising trigger edges.
+
+    With ``single`` the whole recording is one cycle starting at its first event (a
+    single ramp, as in temporal-mapping captures).
 
     The window defaults to the rig's ramp (simulated recordings) or the median trigger
     period. Without triggers, a simulated recording's metadata gives the cycle starts;
     other recordings need ``asynhdr.segment.cycles_from_events`` first.
     """
     rig = rig_of(rec)
+    if single:
+        if rec.events.size == 0:
+            raise ValueError("recording has no events: nothing to reconstruct")
+        t = rec.events["t"]
+        t0 = int(t.min())
+        span = float(int(t.max()) - t0 + 1)
+        return CycleWindows(np.array([t0]), float(window_us or span))
     trig = rec.triggers
     rising = trig["t"][trig["rising"]] if trig.size else np.zeros(0, np.int64)
     if rising.size:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -18,8 +19,8 @@ from rich.table import Table
 
 from asynhdr.cli import app
 
-console = Console()
-err_console = Console(stderr=True)
+console = Console(width=None if sys.stdout.isatty() else 110)
+err_console = Console(stderr=True, width=None if sys.stderr.isatty() else 110)
 
 IMAGE_FORMATS = ("exr", "hdr", "npy", "png", "tif")
 
@@ -69,7 +70,10 @@ def demo(
     out: Path = typer.Option(Path("out/demo"), help="Output folder."),
     width: int = typer.Option(640, help="Sensor width (pixels)."),
     height: int = typer.Option(480, help="Sensor height (pixels)."),
-    preset: str = typer.Option("v2e", help="Sensor preset."),
+    preset: str = typer.Option("v2e", help="Sensor preset: ideal | v2e | imx636 | davis346."),
+    compare: str | None = typer.Option(None, help="A second preset whose SNR columns are "
+                                       "printed beside the first (e.g. ideal)."),
+    engine: str = typer.Option("exact", help="Simulator engine: exact | stepped."),
     n_cycles: int = typer.Option(3, help="Chart cycles to simulate."),
     n_flat: int = typer.Option(4, help="Flat-field captures for the c-map."),
     k: float = typer.Option(10.0, help="k of the exponential weighting 2^(-k t)."),
@@ -87,6 +91,7 @@ def demo(
 
     try:
         sensor = get_preset(preset)
+        other = get_preset(compare) if compare else None
     except ValueError as exc:
         fail(str(exc))
     t0 = time.perf_counter()
@@ -97,7 +102,14 @@ def demo(
         with progress_bar() as update:
             res = run_chart_experiment(width=width, height=height, sensor=sensor,
                                        n_cycles=n_cycles, n_flat=n_flat, k=k, seed=seed,
-                                       sensor_seed=sensor_seed, progress=update)
+                                       sensor_seed=sensor_seed, engine=engine,
+                                       progress=update)
+            ref = None
+            if other is not None:
+                ref = run_chart_experiment(
+                    width=width, height=height, sensor=other, n_cycles=n_cycles,
+                    n_flat=n_flat, k=k, seed=seed, sensor_seed=sensor_seed, engine=engine,
+                    progress=lambda st, d, t: update(f"{other.name}: {st}", d, t))
     except ValueError as exc:
         fail(str(exc))
     out.mkdir(parents=True, exist_ok=True)
@@ -118,30 +130,45 @@ def demo(
         for r in res.results if r.with_cmap or r.method == "raw"]
     plot_mosaic([p[1] for p in picks], [p[0] for p in picks], out / "mosaic.png")
     summary = res.summary()
+    if ref is not None:
+        summary["compare"] = ref.summary()
     summary["elapsed_s"] = time.perf_counter() - t0
     from asynhdr._atomic import atomic_path
 
     with atomic_path(out / "results.json") as tmp:
         tmp.write_text(json.dumps(summary, indent=1))
 
-    table = Table(title="Mean patch SNR (dB) on the 36-level chart, last cycle")
-    for col in ("weighting", "no c-map", "paper", "with c-map", "paper", "DR (dB)",
-                "resolved D"):
-        table.add_column(col, justify="right" if col != "weighting" else "left")
-    for m in WEIGHTINGS:
-        a, b = res.get(m, False), res.get(m, True)
-        pa, pb = PAPER_SNR_DB[m]
-        table.add_row(m, f"{a.mean_snr_db:.2f}", f"{pa:.2f}", f"{b.mean_snr_db:.2f}",
-                      f"{pb:.2f}", f"{b.dr.dr_db:.1f}",
-                      f"{b.dr.d_brightest:.2f}-{b.dr.d_darkest:.2f}")
-    for m in ("ttfe", "count"):
+    table = Table(title="Mean patch SNR (dB) on the 36-level chart, last cycle "
+                  "(no c-map / with c-map)")
+    table.add_column("weighting")
+    table.add_column(f"{preset}", justify="right")
+    if ref is not None:
+        table.add_column(f"{ref.metadata['sensor']['name']}", justify="right")
+    table.add_column("paper", justify="right")
+    table.add_column(f"DR {preset} (dB)", justify="right")
+    table.add_column("resolved D", justify="right")
+
+    def pair(r: Any, m: str) -> str:
+        a, b = r.get(m, False), r.get(m, True)
+        return f"{a.mean_snr_db:6.2f} / {b.mean_snr_db:6.2f}"
+
+    for m in (*WEIGHTINGS, "ttfe", "count"):
         try:
-            a, b = res.get(m, False), res.get(m, True)
+            b = res.get(m, True)
         except KeyError:
             continue
-        table.add_row(f"{m} (baseline)", f"{a.mean_snr_db:.2f}", "-", f"{b.mean_snr_db:.2f}",
-                      "-", f"{b.dr.dr_db:.1f}", f"{b.dr.d_brightest:.2f}-{b.dr.d_darkest:.2f}")
+        row = [m if m in WEIGHTINGS else f"{m} (baseline)", pair(res, m)]
+        if ref is not None:
+            row.append(pair(ref, m))
+        pa = PAPER_SNR_DB.get(m)
+        row.append(f"{pa[0]:6.2f} / {pa[1]:6.2f}" if pa else "-")
+        row += [f"{b.dr.dr_db:.1f}", f"{b.dr.d_brightest:.2f}-{b.dr.d_darkest:.2f}"]
+        table.add_row(*row)
     console.print(table)
+    ro = res.metadata.get("readout") or {}
+    if ro.get("emitted"):
+        console.print(f"readout ({preset}): {ro['emitted']:,} emitted, {ro['delivered']:,} "
+                      f"delivered, {ro['delayed']:,} delayed, {ro['dropped']:,} dropped")
     best = res.get("exp", True)
     console.print(
         f"Dynamic range (exp, k={k:g}, with c-map): [bold]{best.dr.dr_db:.1f} dB[/] "
@@ -202,6 +229,8 @@ def simulate(
     seed: int = typer.Option(0, help="Seed of this capture's randomness."),
     sensor_seed: int = typer.Option(1, help="Seed of the sensor's frozen mismatch "
                                     "(same seed, same sensor)."),
+    engine: str = typer.Option("exact", help="Simulator engine: exact | stepped."),
+    dt_us: float = typer.Option(5.0, help="Step of the stepped engine (µs)."),
 ) -> None:
     """Simulate a scene seen through the rig and write the recording."""
     from asynhdr.io import write_recording
@@ -216,7 +245,8 @@ def simulate(
         sc = _scene_from_spec(scene, width, height, scale)
         with progress_bar() as update:
             rec = run(sc, rig=rig, sensor=sensor, n_cycles=n_cycles, rng=seed,
-                      sensor_seed=sensor_seed, progress=lambda d, t: update("simulate", d, t))
+                      sensor_seed=sensor_seed, engine=engine, dt_us=dt_us,
+                      progress=lambda d, t: update("simulate", d, t))
         write_recording(out, rec)
     except (ValueError, FileNotFoundError) as exc:
         fail(str(exc))
@@ -269,6 +299,8 @@ def reconstruct(
                                            "recording's sensor, else 0.2)."),
     window_us: float | None = typer.Option(None, help="Integration window after each cycle "
                                            "start (default: the ramp, else the period)."),
+    single: bool = typer.Option(False, "--single", help="Treat the whole recording as one "
+                                "cycle (a single ramp, e.g. a temporal-mapping capture)."),
     width: int | None = typer.Option(None, help="Sensor width, for files without geometry."),
     height: int | None = typer.Option(None, help="Sensor height, for files without geometry."),
     formats: str = typer.Option("exr,png", help=f"Comma-separated, from {IMAGE_FORMATS}."),
@@ -285,7 +317,7 @@ def reconstruct(
     try:
         rec = open_recording(recording, width=width, height=height)
         cm = load_cmap(cmap) if cmap is not None else None
-        windows = windows_for(rec, window_us=window_us)
+        windows = windows_for(rec, window_us=window_us, single=single)
         imgs = run(rec, method=method, k=k, cmap=cm, windows=windows, threshold=threshold)
     except (ValueError, FileNotFoundError) as exc:
         fail(str(exc))
