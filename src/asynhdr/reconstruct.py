@@ -28,7 +28,8 @@ Baselines:
 
       L = L_const * (e^c T2(0) - T2(u)) / (T1(u) - e^c T1(0))
 
-  which is linear in radiance. Without a rig, ``L`` is taken ``∝ 1/u`` (a linear ramp).
+  which is linear in radiance (the event time is taken half a µs after its floored
+  timestamp). Without a rig, ``L`` is taken ``∝ 1/u`` (a linear ramp).
   Pixels with no ON event in the window are 0.
 - ``count``: ``L_const * exp(c * n_on)`` from the number of ON events alone.
 
@@ -326,8 +327,9 @@ def _ttfe(rec: Recording, windows: CycleWindows, *, k: float, threshold: float,
     w1, w2 = rig.waveforms()
     c = threshold if cmap is None else threshold * cmap
     ec = np.exp(c)
-    # u is in the window's units; the waveforms are in cycle phase.
-    ph = u * (windows.window_us / rig.period_us)
+    # u is in the window's units; the waveforms are in cycle phase. Timestamps are
+    # floored to whole µs: the crossing lies on average half a µs after its stamp.
+    ph = (u * windows.window_us + 0.5) / rig.period_us
     valid = ~np.isnan(ph)
     phv = np.where(valid, ph, 0.0)
     t1u, t2u = w1(phv), w2(phv)

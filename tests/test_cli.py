@@ -1,0 +1,90 @@
+"""The command line end to end, on a small sensor: simulate -> calibrate -> reconstruct."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from asynhdr.cli import _register, app
+from asynhdr.io import open_recording
+from asynhdr.io.images import read_image
+
+_register()
+runner = CliRunner()
+
+
+def run(*args: str):
+    return runner.invoke(app, [str(a) for a in args])
+
+
+def test_simulate_calibrate_reconstruct(tmp_path: Path) -> None:
+    common = ["--width", "64", "--height", "48", "--n-cycles", "2", "--sensor-seed", "3"]
+    r = run("simulate", "chart", "-o", tmp_path / "chart.h5", *common)
+    assert r.exit_code == 0, r.output
+    for i in range(2):
+        r = run("simulate", "flat:1600", "-o", tmp_path / f"flat{i}.npz", *common,
+                "--seed", str(10 + i))
+        assert r.exit_code == 0, r.output
+    r = run("calibrate", tmp_path / "flat0.npz", tmp_path / "flat1.npz",
+            "-o", tmp_path / "cmap.npz")
+    assert r.exit_code == 0, r.output
+    r = run("reconstruct", tmp_path / "chart.h5", "-o", tmp_path / "img", "--method", "exp",
+            "--cmap", tmp_path / "cmap.npz", "--formats", "exr,png,npy")
+    assert r.exit_code == 0, r.output
+    rec = open_recording(tmp_path / "chart.h5")
+    assert rec.triggers.size == 2 and rec.metadata["sensor_seed"] == 3
+    names = sorted(p.name for p in (tmp_path / "img").iterdir())
+    assert names == [f"chart_exp_{i:04d}.{e}" for i in range(2) for e in ("exr", "npy", "png")]
+    img = read_image(tmp_path / "img" / "chart_exp_0001.exr")
+    assert img.shape == (48, 64) and np.all(np.isfinite(img)) and img.max() > img.min()
+
+
+def test_demo_small(tmp_path: Path) -> None:
+    r = run("demo", "--out", tmp_path, "--width", "74", "--height", "34", "--n-cycles", "2",
+            "--n-flat", "2")
+    assert r.exit_code == 0, r.output
+    assert "paper" in r.output and "Dynamic range" in r.output
+    res = json.loads((tmp_path / "results.json").read_text())
+    assert {m["method"] for m in res["methods"]} >= {"raw", "linear", "quadratic", "poly5",
+                                                      "exp", "ttfe", "count"}
+    for name in ("mosaic.png", "snr_per_level.png", "chart_response.png", "cmap.npz",
+                 "images/exp_cmap.exr", "images/raw.png"):
+        assert (tmp_path / name).is_file(), name
+
+
+@pytest.mark.parametrize(
+    ("scene", "message"),
+    [
+        ("missing.exr", "no such file"),
+        ("notimage.exr", "missing.exr"),
+        ("nan.npy", "NaN"),
+        ("flat:abc", "flat:RADIANCE"),
+    ],
+)
+def test_bad_scene_writes_nothing(tmp_path: Path, scene: str, message: str) -> None:
+    (tmp_path / "notimage.exr").write_text("this is not an image")
+    np.save(tmp_path / "nan.npy", np.array([[1.0, np.nan], [2.0, 3.0]], np.float32))
+    out = tmp_path / "rec.h5"
+    arg = str(tmp_path / scene) if not scene.startswith("flat:") else scene
+    r = run("simulate", arg, "-o", out, "--width", "40", "--height", "20")
+    assert r.exit_code == 2
+    if scene != "notimage.exr":
+        assert message in r.output
+    assert not out.exists()
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+
+
+@pytest.mark.parametrize(
+    ("flag", "value", "message"),
+    [("--period-us", "0", "period_us"), ("--period-us", "-10", "period_us"),
+     ("--preset", "nope", "unknown sensor preset")],
+)
+def test_bad_parameters_are_named(tmp_path: Path, flag: str, value: str, message: str) -> None:
+    out = tmp_path / "rec.h5"
+    r = run("simulate", "chart", "-o", out, "--width", "40", "--height", "20", flag, value)
+    assert r.exit_code == 2 and message in r.output
+    assert not out.exists()

@@ -1,0 +1,164 @@
+"""Reconstruction, calibration and chart metrics against hand-computed answers."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from asynhdr.calibrate import estimate_cmap
+from asynhdr.events import Recording, make_events, make_triggers, validate_events
+from asynhdr.metrics import PatchStats, dynamic_range, mean_snr_db, patch_stats
+from asynhdr.reconstruct import (
+    METHODS,
+    CycleWindows,
+    reconstruct,
+    weight,
+    weighted_sums,
+    windows_for,
+)
+from asynhdr.rig import Rig
+from asynhdr.scene import flat_field
+from asynhdr.simulate import simulate
+
+
+def _rec(events, width=2, height=1, triggers=None, metadata=None) -> Recording:
+    return Recording(events=events, width=width, height=height,
+                     triggers=triggers if triggers is not None else make_triggers([0, 1000]),
+                     metadata=metadata or {})
+
+
+@pytest.mark.parametrize(
+    ("method", "f"),
+    [("raw", lambda u: 1.0), ("linear", lambda u: 1 - u), ("quadratic", lambda u: (1 - u) ** 2),
+     ("poly5", lambda u: (1 - u) ** 5), ("exp", lambda u: 2 ** (-10 * u))],
+)
+def test_paper_formula_by_hand(method, f) -> None:
+    # pixel 0: ON at 100 µs, ON at 250 µs, OFF at 600 µs in cycle 0 (window 1000 µs);
+    # pixel 1: ON at 1100 µs (cycle 1, u = 0.1); an event past the window is ignored.
+    ev = make_events(x=[0, 0, 0, 1, 1], y=[0] * 5, p=[1, 1, -1, 1, 1],
+                     t=[100, 250, 600, 1100, 1950])
+    rec = _rec(ev)
+    win = CycleWindows(np.array([0, 1000]), 900.0)
+    c, lc = 0.17, 3.0
+    img = reconstruct(rec, method=method, windows=win, threshold=c, l_const=lc)
+    assert img.shape == (2, 1, 2)
+    s00 = f(100 / 900) + f(250 / 900) - f(600 / 900)
+    assert img[0, 0, 0] == pytest.approx(lc * math.exp(c * s00), rel=1e-6)
+    assert img[0, 0, 1] == pytest.approx(lc, rel=1e-6)  # no events: L_const
+    assert img[1, 0, 1] == pytest.approx(lc * math.exp(c * f(100 / 900)), rel=1e-6)
+    assert img[1, 0, 0] == pytest.approx(lc, rel=1e-6)
+
+
+def test_weightings_decrease_and_start_at_one() -> None:
+    u = np.linspace(0, 0.999, 50)
+    for m in ("linear", "quadratic", "poly5", "exp"):
+        w = weight(m, u)
+        assert w[0] == pytest.approx(1.0)
+        assert np.all(np.diff(w) < 0)
+    assert weight("exp", np.array([0.5]), k=4)[0] == pytest.approx(0.25)
+
+
+def test_cmap_scales_the_threshold_per_pixel() -> None:
+    ev = make_events(x=[0, 0, 1], y=[0, 0, 0], p=[1, 1, 1], t=[10, 20, 30])
+    rec = _rec(ev)
+    win = CycleWindows(np.array([0]), 1000.0)
+    cm = np.array([[0.5, 2.0]], dtype=np.float32)
+    img = reconstruct(rec, method="raw", windows=win, cmap=cm, threshold=0.2, l_const=1.0)
+    assert img[0, 0, 0] == pytest.approx(math.exp(0.2 * 0.5 * 2))
+    assert img[0, 0, 1] == pytest.approx(math.exp(0.2 * 2.0 * 1))
+
+
+def test_unsorted_events_are_sorted_before_summing() -> None:
+    ev = make_events(x=[0, 1, 0], y=[0, 0, 0], p=[1, 1, 1], t=[1500, 200, 100])
+    rec = _rec(ev)
+    win = CycleWindows(np.array([0, 1000]), 1000.0)
+    s = weighted_sums(rec, win, method="raw")
+    assert s[0].tolist() == [[1.0, 1.0]] and s[1].tolist() == [[1.0, 0.0]]
+
+
+def test_ttfe_inverts_the_waveform_linearly_in_radiance() -> None:
+    """ttfe returns radiance: the first ON of an ideal pixel inverts exactly (up to the
+    1 µs timestamp), so doubling L doubles the estimate."""
+    rig = Rig(period_us=50_000)
+    radiance = np.array([[40.0, 80.0, 500.0, 5000.0]])
+    rec = simulate(radiance, rig=rig, sensor="ideal", n_cycles=1)
+    img = reconstruct(rec, method="ttfe")[0]
+    # dim pixels fire late: the 1 µs stamp is negligible; the brightest fires after
+    # ~30 µs, where half a µs is ~2 % of the time
+    np.testing.assert_allclose(img[0, :3], radiance[0, :3], rtol=3e-3)
+    assert img[0, 3] == pytest.approx(radiance[0, 3], rel=0.03)
+
+
+def test_every_method_runs_and_is_monotone_on_a_ramp_of_radiances() -> None:
+    radiance = np.geomspace(15.0, 5000.0, 12).reshape(1, 12)
+    rec = simulate(radiance, sensor="ideal", n_cycles=2)
+    for m in METHODS:
+        img = reconstruct(rec, method=m)[-1, 0]
+        assert np.all(np.diff(img) >= 0), m
+
+
+def test_cmap_from_flat_fields_removes_threshold_mismatch() -> None:
+    rig = Rig()
+    flat = flat_field(width=40, height=30, radiance=1600.0)
+    caps = [simulate(flat, rig=rig, sensor="v2e", n_cycles=1, rng=i, sensor_seed=5)
+            for i in range(2)]
+    cmap = estimate_cmap(caps)
+    test = simulate(flat, rig=rig, sensor="v2e", n_cycles=1, rng=9, sensor_seed=5)
+    for m in ("raw", "exp"):
+        plain = reconstruct(test, method=m)[0]
+        fixed = reconstruct(test, method=m, cmap=cmap)[0]
+        cv_plain = plain.std() / plain.mean()
+        cv_fixed = fixed.std() / fixed.mean()
+        assert cv_fixed < 0.5 * cv_plain, (m, cv_plain, cv_fixed)
+    # a pixel with a larger threshold fires less on the flat field and gets a larger map
+    c_on = np.full((30, 40), 0.2)
+    c_on[3, 7] = 0.3
+    caps = [simulate(flat, rig=rig, sensor="ideal", thresholds=(c_on, c_on))]
+    m = estimate_cmap(caps).maps["raw"]
+    assert m[3, 7] > 1.2 and abs(float(np.median(m)) - 1.0) < 1e-6
+
+
+def test_windows_from_triggers_and_from_metadata() -> None:
+    rig = Rig(period_us=10_000, ramp_fraction=0.8)
+    rec = simulate(np.full((2, 2), 100.0), rig=rig, n_cycles=3, t0_us=500)
+    win = windows_for(rec)
+    assert win.start_us.tolist() == [500, 10_500, 20_500]
+    assert win.window_us == pytest.approx(8_000)
+    no_trig = Recording(events=rec.events, width=2, height=2, metadata=rec.metadata)
+    assert windows_for(no_trig).start_us.tolist() == [500, 10_500, 20_500]
+
+
+def test_snr_and_dynamic_range_by_hand() -> None:
+    img = np.zeros((4, 8))
+    img[:, :4] = [[10, 10, 12, 12]] * 4  # mean 11, std 1 -> 20 log10(11)
+    img[:, 4:] = 5.0
+    st = patch_stats(img, {0: (0, 4, 0, 4), 1: (0, 4, 4, 8)})
+    assert st.mean.tolist() == [11.0, 5.0]
+    assert st.snr_db[0] == pytest.approx(20 * math.log10(11.0))
+    assert math.isinf(st.snr_db[1])
+    assert mean_snr_db(st, cap_db=100.0) == pytest.approx((20 * math.log10(11) + 100) / 2)
+    # densities 0, 1, 2, 3; means distinguished except the last pair -> run 0..2
+    st = PatchStats(mean=np.array([100.0, 10.0, 1.0, 0.9]), std=np.array([1, 1, 0.1, 0.5]))
+    dr = dynamic_range(st, np.array([0.0, 1.0, 2.0, 3.0]))
+    assert dr.dr_db == pytest.approx(40.0)
+    assert (dr.d_brightest, dr.d_darkest) == (0.0, 2.0)
+    assert dr.resolved.tolist() == [True, True, True, False]
+
+
+@pytest.mark.parametrize(
+    ("mutate", "match"),
+    [
+        (lambda e: e.__setitem__("x", np.array([0, 5], np.uint16)), "outside the sensor"),
+        (lambda e: e.__setitem__("t", np.array([10, 5])), "not sorted"),
+        (lambda e: e.__setitem__("p", np.array([1, 0], np.int8)), "polarity"),
+    ],
+)
+def test_event_validation_names_the_problem(mutate, match) -> None:
+    ev = make_events(x=[0, 1], y=[0, 0], p=[1, -1], t=[1, 2])
+    mutate(ev)
+    with pytest.raises(ValueError, match=match):
+        validate_events(ev, width=2, height=1)
+    with pytest.raises(ValueError, match="dtype"):
+        validate_events(ev.astype([("x", "u2"), ("y", "u2"), ("p", "i2"), ("t", "i8")]))
