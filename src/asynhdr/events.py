@@ -12,6 +12,7 @@ import logging
 from dataclasses import dataclass, field, replace
 from typing import Any
 
+import numba as nb
 import numpy as np
 import numpy.typing as npt
 
@@ -97,38 +98,56 @@ def validate_events(
         raise ValueError(f"{name}: expected a 1-D array, got shape {events.shape}")
     if events.size == 0:
         return events
-    p = events["p"]
-    bad = (p != 1) & (p != -1)
-    if bad.any():
-        i = int(np.argmax(bad))
-        raise ValueError(f"{name}: polarity must be +1 or -1; event {i} has p={int(p[i])}")
-    if width is not None:
-        over = events["x"] >= width
-        if over.any():
-            i = int(np.argmax(over))
-            raise ValueError(
-                f"{name}: event {i} at x={int(events['x'][i])} is outside the sensor "
-                f"(width={width})"
-            )
-    if height is not None:
-        over = events["y"] >= height
-        if over.any():
-            i = int(np.argmax(over))
-            raise ValueError(
-                f"{name}: event {i} at y={int(events['y'][i])} is outside the sensor "
-                f"(height={height})"
-            )
-    if require_sorted:
+    code, i, back = _scan_events(events["x"], events["y"], events["p"], events["t"],
+                                 -1 if width is None else int(width),
+                                 -1 if height is None else int(height), require_sorted)
+    if code == 1:
+        raise ValueError(f"{name}: polarity must be +1 or -1; event {i} has "
+                         f"p={int(events['p'][i])}")
+    if code == 2:
+        raise ValueError(
+            f"{name}: event {i} at x={int(events['x'][i])} is outside the sensor "
+            f"(width={width})"
+        )
+    if code == 3:
+        raise ValueError(
+            f"{name}: event {i} at y={int(events['y'][i])} is outside the sensor "
+            f"(height={height})"
+        )
+    if code == 4:
         t = events["t"]
-        back = t[1:] < t[:-1]
-        if back.any():
-            i = int(np.argmax(back)) + 1
-            raise ValueError(
-                f"{name}: times are not sorted: event {i} at t={int(t[i])} µs comes after "
-                f"t={int(t[i - 1])} µs ({int(back.sum())} backward steps in all); "
-                "use asynhdr.events.sort_events to sort stably"
-            )
+        raise ValueError(
+            f"{name}: times are not sorted: event {i} at t={int(t[i])} µs comes after "
+            f"t={int(t[i - 1])} µs ({back} backward steps in all); "
+            "use asynhdr.events.sort_events to sort stably"
+        )
     return events
+
+
+@nb.njit(cache=True)
+def _scan_events(x, y, p, t, width, height, require_sorted):  # type: ignore[no-untyped-def]
+    """One pass over the fields: (problem code, first index, backward steps).
+
+    Codes: 0 fine, 1 polarity, 2 x outside, 3 y outside, 4 time steps back. Polarity and
+    geometry problems are reported before time order.
+    """
+    back = 0
+    first_back = -1
+    for i in range(x.shape[0]):
+        pi = p[i]
+        if pi != 1 and pi != -1:
+            return 1, i, 0
+        if width >= 0 and x[i] >= width:
+            return 2, i, 0
+        if height >= 0 and y[i] >= height:
+            return 3, i, 0
+        if require_sorted and i > 0 and t[i] < t[i - 1]:
+            back += 1
+            if first_back < 0:
+                first_back = i
+    if first_back >= 0:
+        return 4, first_back, back
+    return 0, -1, 0
 
 
 def validate_triggers(triggers: Any, *, name: str = "triggers") -> np.ndarray:

@@ -189,6 +189,8 @@ def simulate(
         return rig.k_lens * (w1(u) * rad_f[pix] + w2(u) * rig.l_const)
 
     signal: list[np.ndarray] = []
+    alive = np.ones(width * height, dtype=np.int8)
+    alive[defects.dead] = 0
     if engine == "exact":
         pieces = cycle_pieces(t1v, t2v)
         state = ExactState(np.log(rho * t1v[0] + t2v[0]))
@@ -200,7 +202,8 @@ def simulate(
                 refractory_us=sensor.refractory_us, irradiance_scale=scale,
                 tau_ref_us=sensor.tau_ref_us, cutoff_irradiance=sensor.cutoff_irradiance,
                 dark_irradiance=sensor.dark_irradiance, tau_max_us=sensor.tau_max_us,
-                latency_us=sensor.latency_us, jitter_sigma_us=sensor.jitter_sigma_us))
+                latency_us=sensor.latency_us, jitter_sigma_us=sensor.jitter_sigma_us,
+                alive=alive))
             if progress is not None:
                 progress(k + 1, n_cycles)
     else:
@@ -227,13 +230,11 @@ def simulate(
         else:
             chunks = [merge_sorted(signal[0], _concat_sorted(noise))]
     events = _concat_sorted(chunks)
-    n_dead = 0
-    if defects.dead.size:
-        dead = np.zeros(width * height, dtype=bool)
-        dead[defects.dead] = True
-        alive = ~dead[events["y"].astype(np.int64) * width + events["x"]]
-        n_dead = int(events.size - alive.sum())
-        events = events[alive]
+    if defects.dead.size and (engine != "exact" or n_noise):
+        # the exact engine skips dead pixels itself; other sources are filtered here
+        keep = alive[events["y"].astype(np.int64) * width + events["x"]].astype(bool)
+        if not keep.all():
+            events = events[keep]
     step = sensor.timestamp_resolution_us
     if step > 1:
         events["t"] = (events["t"] // step) * step
@@ -251,7 +252,7 @@ def simulate(
         "sensor_seed": sensor_seed,
         "radiance_unit": info.get("unit", "relative"),
         "scene": info.get("name", ""),
-        "counts": {"signal": n_signal, "background": n_noise, "dead_pixel_dropped": n_dead,
+        "counts": {"signal": n_signal, "background": n_noise,
                    "hot_pixels": int(defects.hot.size), "dead_pixels": int(defects.dead.size)},
         "readout": {"emitted": stats.emitted, "delivered": stats.delivered,
                     "delayed": stats.delayed, "dropped": stats.dropped,

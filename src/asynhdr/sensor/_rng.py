@@ -11,7 +11,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-__all__ = ["hash_normal", "hash_uniform", "seed_from"]
+__all__ = ["hash_normal", "hash_normal2", "hash_uniform", "seed_from"]
 
 _M1 = np.uint64(0xBF58476D1CE4E5B9)
 _M2 = np.uint64(0x94D049BB133111EB)
@@ -41,6 +41,16 @@ def hash_normal(seed, a, b, c):
     u1 = hash_uniform(seed, a, b, 2 * c)
     u2 = hash_uniform(seed, a, b, 2 * c + 1)
     return np.sqrt(-2.0 * np.log(u1)) * np.cos(2.0 * np.pi * u2)
+
+
+@nb.njit(cache=True, inline="always")
+def hash_normal2(seed, a, b, c):
+    """Two independent standard normals (both Box-Muller outputs) for one counter."""
+    u1 = hash_uniform(seed, a, b, 2 * c)
+    u2 = hash_uniform(seed, a, b, 2 * c + 1)
+    r = np.sqrt(-2.0 * np.log(u1))
+    ang = 2.0 * np.pi * u2
+    return r * np.cos(ang), r * np.sin(ang)
 
 
 def seed_from(rng: np.random.Generator) -> int:

@@ -28,7 +28,7 @@ import numba as nb
 import numpy as np
 
 from asynhdr.events import EVENT_DTYPE
-from asynhdr.sensor._rng import hash_normal
+from asynhdr.sensor._rng import hash_normal2
 
 __all__ = ["cycle_pieces", "simulate_cycle_exact"]
 
@@ -190,7 +190,7 @@ def _interval_of(u, lo, hi, ph):
 @nb.njit(cache=True, parallel=True)
 def _fill(rho, c_on, c_off, ref, blind, pending, u, t1, t2, pieces, period_us, offsets,
           slot_t, slot_p, counts, overflow, seed, cycle, reset_sigma, refr_us, lag_scale,
-          tau_num, dark_irr, tau_max_us, latency_us, jitter_us, t_lo, nbins):
+          tau_num, dark_irr, tau_max_us, latency_us, jitter_us, t_lo, nbins, alive):
     """Events of one cycle per pixel into slots ``offsets[p] ..``.
 
     Per-pixel state carried across cycles: ``ref`` (reference log level), ``blind``
@@ -204,8 +204,13 @@ def _fill(rho, c_on, c_off, ref, blind, pending, u, t1, t2, pieces, period_us, o
     npix = rho.shape[0]
     refr_ph = refr_us / period_us
     use_lag = tau_num > 0.0
+    draws = jitter_us > 0.0 or reset_sigma > 0.0
     for p in nb.prange(npix):
+        if alive[p] == 0:
+            counts[p] = 0
+            continue
         runs = np.empty((2 * pieces.shape[0], 3), dtype=np.int64)
+        z_reset = 0.0
         r = rho[p]
         nr = _pixel_runs(r, d1, d2, pieces, runs)
         lvl = ref[p]
@@ -232,9 +237,7 @@ def _fill(rho, c_on, c_off, ref, blind, pending, u, t1, t2, pieces, period_us, o
                 ph0 = max(u[a], res)
                 e0 = _e_at(r, u, t1, t2, a, ph0) if ph0 > u[a] else r * t1[a] + t2[a]
                 if pend:
-                    lvl = np.log(e0)
-                    if reset_sigma > 0.0:
-                        lvl += reset_sigma * hash_normal(seed, p, cycle, 4 * n + 2)
+                    lvl = np.log(e0) + reset_sigma * z_reset
                     pend = False
                 level = lvl + con if up else lvl - coff
                 target = np.exp(level)
@@ -264,8 +267,9 @@ def _fill(rho, c_on, c_off, ref, blind, pending, u, t1, t2, pieces, period_us, o
                 if use_lag:
                     tau = tau_num / (lag_scale * target + dark_irr)
                     t_us += min(tau, tau_max_us)
-                if jitter_us > 0.0:
-                    t_us += jitter_us * hash_normal(seed, p, cycle, 4 * n + 1)
+                if draws:
+                    z_jit, z_reset = hash_normal2(seed, p, cycle, n)
+                    t_us += jitter_us * z_jit
                 if t_us < last_t:
                     t_us = last_t
                 last_t = t_us
@@ -280,9 +284,7 @@ def _fill(rho, c_on, c_off, ref, blind, pending, u, t1, t2, pieces, period_us, o
                         break
                     a = _interval_of(u, jint, b - 1, res)
                 else:
-                    lvl = level
-                    if reset_sigma > 0.0:
-                        lvl += reset_sigma * hash_normal(seed, p, cycle, 4 * n)
+                    lvl = level + reset_sigma * z_reset
                     res = ph
                     a = jint
         if pend and res <= u[u.shape[0] - 1]:
@@ -371,6 +373,7 @@ def simulate_cycle_exact(
     tau_max_us: float = 0.0,
     latency_us: float = 0.0,
     jitter_sigma_us: float = 0.0,
+    alive: np.ndarray | None = None,
 ) -> np.ndarray:
     """Events of one cycle of the pixel array, sorted by time.
 
@@ -389,6 +392,7 @@ def simulate_cycle_exact(
         time constant ``tau_ref (I_ref + I_dark) / (I + I_dark)`` (capped), applied as
         the lag of a first-order low-pass behind a slowly varying input: each event is
         delayed by ``tau`` at the irradiance where it fires. 0 disables.
+    alive : int8 per pixel, 0 for dead pixels (they fire nothing); default all alive.
 
     Returns
     -------
@@ -408,6 +412,8 @@ def simulate_cycle_exact(
     if reset_noise_sigma > 0:
         cmin = float(min(c_on.min(), c_off.min()))
         c_scale = max(0.25, 1.0 - 6.0 * reset_noise_sigma / cmin)
+    if alive is None:
+        alive = np.ones(npix, dtype=np.int8)
     bound = np.empty(npix, dtype=np.int64)
     for _attempt in range(6):
         _bounds(rho, c_on, c_off, t1, t2, pieces, c_scale, bound)
@@ -424,7 +430,7 @@ def simulate_cycle_exact(
               np.int64(cycle), float(reset_noise_sigma), float(refractory_us),
               float(irradiance_scale), float(tau_num), float(dark_irradiance),
               float(tau_max_us), float(latency_us), float(jitter_sigma_us), np.int64(t_lo),
-              np.int64(nbins))
+              np.int64(nbins), alive)
         if not overflow.any():
             break
         state.ref[:], state.blind[:], state.pending[:] = saved

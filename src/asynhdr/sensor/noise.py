@@ -195,8 +195,8 @@ def _arbiter(t, service_us, drop, buffer, free_at, keep, t_out):
         free_at = start + service_us
         keep[i] = True
         ts = np.int64(np.floor(start))
-        t_out[i] = ts
         if ts > t[i]:
+            t_out[i] = ts
             delayed += 1
             if start - ti > max_delay:
                 max_delay = start - ti
@@ -215,12 +215,12 @@ class Arbiter:
         self.stats = ArbiterStats()
 
     def __call__(self, events: np.ndarray) -> np.ndarray:
+        """Serve ``events`` (time-sorted); their timestamps are updated in place."""
         keep = np.empty(events.size, np.bool_)
-        t_out = np.empty(events.size, np.int64)
+        t = events["t"]
         self.free_at, delayed, dropped, max_delay = _arbiter(
-            events["t"], self.service_us, self.drop, self.buffer, self.free_at, keep, t_out)
-        out = events[keep]
-        out["t"] = t_out[keep]
+            t, self.service_us, self.drop, self.buffer, self.free_at, keep, t)
+        out = events[keep] if dropped else events
         s = self.stats
         s.emitted += int(events.size)
         s.delivered += int(out.size)
