@@ -125,7 +125,7 @@ def validate_events(
 
 
 @nb.njit(cache=True)
-def _scan_events(x, y, p, t, width, height, require_sorted):  # type: ignore[no-untyped-def]
+def _scan_events(x, y, p, t, width, height, require_sorted):
     """One pass over the fields: (problem code, first index, backward steps).
 
     Codes: 0 fine, 1 polarity, 2 x outside, 3 y outside, 4 time steps back. Polarity and

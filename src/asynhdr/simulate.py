@@ -230,8 +230,8 @@ def simulate(
         else:
             chunks = [merge_sorted(signal[0], _concat_sorted(noise))]
     events = _concat_sorted(chunks)
-    if defects.dead.size and (engine != "exact" or n_noise):
-        # the exact engine skips dead pixels itself; other sources are filtered here
+    if defects.dead.size and engine != "exact":
+        # the exact engine and the background skip dead pixels themselves
         keep = alive[events["y"].astype(np.int64) * width + events["x"]].astype(bool)
         if not keep.all():
             events = events[keep]

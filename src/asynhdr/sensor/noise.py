@@ -87,7 +87,8 @@ def background_events(
     defects: PixelDefects,
     rng: np.random.Generator,
 ) -> np.ndarray:
-    """Leak, shot-noise and hot-pixel events over ``[t_start, t_start + duration)``.
+    """Leak, shot-noise and hot-pixel events over ``[t_start, t_start + duration)``,
+    none on dead pixels.
 
     ``irradiance_at(pixel_index, t_offset_us) -> irradiance`` gives the sensor
     irradiance for the shot-noise rate. Returns events sorted by time.
@@ -124,6 +125,9 @@ def background_events(
     pix = np.concatenate(parts_p)
     t = np.concatenate(parts_t)
     pol = np.concatenate(parts_pol)
+    if defects.dead.size:
+        keep = ~np.isin(pix, defects.dead)
+        pix, t, pol = pix[keep], t[keep], pol[keep]
     ti = t_start_us + np.floor(t).astype(np.int64)
     order = np.argsort(ti, kind="stable")
     out = np.empty(pix.size, EVENT_DTYPE)
