@@ -1,0 +1,537 @@
+"""Numba kernels of the Prophesee EVT 2.0 / 2.1 / 3.0 codec.
+
+Every decoder works on a block of payload words and carries its state (time
+base, current row, vector base, ...) in a small ``int64`` array, so that a file
+can be decoded block by block with the same result as in one piece. A decoder
+returns ``(status, pos, n_events, n_triggers)``:
+
+- ``STATUS_DONE``: every word of the block was consumed;
+- ``STATUS_FULL``: the event buffer reached ``limit`` (or has no room for the
+  next word's events) or the trigger buffer is full; decoding resumes at word
+  ``pos`` after the caller has made room;
+- ``STATUS_BAD_X`` / ``STATUS_BAD_Y``: word ``pos`` produces an event outside
+  the sensor; the offending pixel is left in ``state[S_ERR_X]``, ``state[S_ERR_Y]``.
+
+Numba does not check array bounds: every index below is guarded explicitly.
+The layouts follow Prophesee's published format pages (EVT 2.0, EVT 2.1,
+EVT 3.0) and the behaviour of OpenEB's decoders (time-high loop detection,
+words before the first time-high word dropped).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+__all__ = [
+    "EVT2_STATE_SIZE",
+    "EVT3_STATE_SIZE",
+    "EVT21_STATE_SIZE",
+    "STATUS_BAD_TIME",
+    "STATUS_BAD_X",
+    "STATUS_BAD_Y",
+    "STATUS_DONE",
+    "STATUS_FULL",
+    "S_ERR_X",
+    "S_ERR_Y",
+    "decode_evt2",
+    "decode_evt3",
+    "decode_evt21",
+    "encode_evt3",
+]
+
+STATUS_DONE = 0
+STATUS_FULL = 1
+STATUS_BAD_X = 2
+STATUS_BAD_Y = 3
+STATUS_BAD_TIME = 4
+
+# Slots shared by every decoder state.
+S_STARTED = 0  # 1 once the first time-high word has been seen
+S_ERR_X = 1
+S_ERR_Y = 2
+
+# EVT 3.0 decoder state.
+S3_LOOP = 3  # number of 24-bit time wraps
+S3_HIGH = 4  # last TIME_HIGH value (12 bits)
+S3_LOW = 5  # last TIME_LOW value (12 bits)
+S3_Y = 6  # row from the last EVT_ADDR_Y
+S3_ROW_OK = 7  # 1 after a CD EVT_ADDR_Y (type 0), 0 after a non-CD one (type 1)
+S3_BASE_X = 8  # vector base column
+S3_BASE_P = 9  # vector polarity, +1 or -1
+S3_HAS_BASE = 10  # 1 once a VECT_BASE_X has been seen
+EVT3_STATE_SIZE = 11
+
+# EVT 2.0 decoder state.
+S2_BASE = 3  # time base in µs: (TIME_HIGH << 6) + loop shift
+S2_SHIFT = 4  # accumulated loop shift in µs (multiples of 2**34)
+EVT2_STATE_SIZE = 5
+
+# EVT 2.1 decoder state.
+S21_LAST = 3  # last timestamp in µs, loop count in bits 34 and up
+EVT21_STATE_SIZE = 4
+
+# EVT 2.0: a TIME_HIGH word carries bits 33..6 of the time; OpenEB counts a loop
+# when the time base falls by at least (2**28 - 1) * 2**6 - 10000 µs.
+_EVT2_MAX_TIMESTAMP = ((1 << 28) - 1) << 6
+_EVT2_LOOP_THRESHOLD = 10000
+_EVT2_TIME_LOOP = _EVT2_MAX_TIMESTAMP + (1 << 6)
+# EVT 2.1 uses the same 34-bit time base; a loop is counted only on a full wrap.
+_EVT21_HIGH_MASK = ((1 << 28) - 1) << 6
+
+
+def _bit_tables() -> tuple[np.ndarray, np.ndarray]:
+    """Population count and set-bit offsets (ascending) of every 12-bit mask."""
+    masks = np.arange(4096)
+    bits = (masks[:, None] >> np.arange(12)[None, :]) & 1
+    pop = bits.sum(axis=1).astype(np.uint8)
+    offsets = np.zeros((4096, 12), dtype=np.uint8)
+    for m in range(4096):
+        where = np.flatnonzero(bits[m])
+        offsets[m, : where.size] = where
+    return pop, offsets.reshape(-1)
+
+
+_POP12, _BITS12 = _bit_tables()
+
+
+@njit(cache=True, nogil=True, boundscheck=False)
+def _first_bit_at_or_above(mask, start):
+    """Lowest set bit of ``mask`` at position >= ``start`` (``start`` >= 0), or -1."""
+    for i in range(start, 64):
+        if (mask >> i) & 1:
+            return i
+    return -1
+
+
+@njit(cache=True, nogil=True, boundscheck=False)
+def decode_evt3(words, pos, state, width, height, events, n_ev, limit, triggers, n_tr):
+    """Decode EVT 3.0 16-bit words from ``pos``; see the module docstring for the contract.
+
+    Time is ``t = loop * 2**24 + TIME_HIGH * 2**12 + TIME_LOW`` µs. A TIME_HIGH that
+    falls by at least 2048 (half its range) counts one 24-bit wrap, and a changed
+    TIME_HIGH resets TIME_LOW to 0 until the next TIME_LOW word (OpenEB's rule). A
+    TIME_LOW word always sets the low bits, even when that steps back in time.
+    Events need a CD row (EVT_ADDR_Y) first, vectors a VECT_BASE_X, as in OpenEB.
+
+    All words but vectors and triggers update the state without branches: the
+    next event record is always written and only counted when the word is an
+    event, which keeps the loop free of mispredicted jumps on real streams. The
+    buffer keeps 32 spare records (one 32-column vector group).
+    """
+    n = words.shape[0]
+    cap_tr = triggers.shape[0]
+    started = state[S_STARTED]
+    if started == 0:
+        # Words before the first TIME_HIGH cannot be timed: drop them.
+        while pos < n and (words[pos] >> 12) != 0x8:
+            pos += 1
+        if pos < n:
+            started = 1
+            state[S3_LOOP] = 0
+            state[S3_HIGH] = np.int64(words[pos]) & 0xFFF
+            state[S3_LOW] = 0
+            pos += 1
+    tcur = (state[S3_LOOP] << 24) | (state[S3_HIGH] << 12) | state[S3_LOW]
+    y = state[S3_Y]
+    row_ok = state[S3_ROW_OK]
+    base_x = state[S3_BASE_X]
+    base_p = state[S3_BASE_P]
+    has_base = state[S3_HAS_BASE]
+    stop = events.shape[0] - 32
+    if limit < stop:
+        stop = limit
+    status = STATUS_DONE
+    while pos < n:
+        if n_ev >= stop:
+            status = STATUS_FULL
+            break
+        w = np.int64(words[pos])
+        typ = w >> 12
+        if (
+            typ == 0x3
+            and row_ok == 1
+            and pos + 3 < n
+            and (words[pos + 1] >> 12) == 0x4
+            and (words[pos + 2] >> 12) == 0x4
+            and (words[pos + 3] >> 12) == 0x5
+        ):
+            # VECT_BASE_X + VECT_12 + VECT_12 + VECT_8, the sensor's 32-column group,
+            # in one step. A group that reaches outside the sensor goes word by word
+            # below, which reports the exact pixel.
+            m0 = np.int64(words[pos + 1]) & 0xFFF
+            m1 = np.int64(words[pos + 2]) & 0xFFF
+            m2 = np.int64(words[pos + 3]) & 0xFF
+            gx = w & 0x7FF
+            if (m0 | m1 | m2) == 0 or (y < height and gx + 32 <= width):
+                base_x = gx + 32
+                base_p = ((w >> 10) & 2) - 1
+                has_base = 1
+                for part in range(3):
+                    mask = m0 if part == 0 else (m1 if part == 1 else m2)
+                    cnt = np.int64(_POP12[mask])
+                    for k in range(cnt):
+                        rec = events[n_ev]
+                        rec.x = gx + 12 * part + np.int64(_BITS12[mask * 12 + k])
+                        rec.y = y
+                        rec.p = base_p
+                        rec.t = tcur
+                        n_ev += 1
+                pos += 4
+                continue
+        if (typ >> 1) == 2:  # VECT_12 (0x4) / VECT_8 (0x5): bit i -> column base_x + i
+            size = 12 if typ == 0x4 else 8
+            if row_ok == 1:
+                mask = w & (0xFFF if typ == 0x4 else 0xFF)
+                if has_base == 1 and mask != 0:
+                    if y >= height:
+                        state[S_ERR_X] = base_x + _first_bit_at_or_above(mask, 0)
+                        state[S_ERR_Y] = y
+                        status = STATUS_BAD_Y
+                        break
+                    if base_x + size > width:
+                        first_bad = _first_bit_at_or_above(mask, max(width - base_x, 0))
+                        if first_bad >= 0:
+                            state[S_ERR_X] = base_x + first_bad
+                            state[S_ERR_Y] = y
+                            status = STATUS_BAD_X
+                            break
+                    cnt = np.int64(_POP12[mask])
+                    for k in range(cnt):
+                        rec = events[n_ev]
+                        rec.x = base_x + np.int64(_BITS12[mask * 12 + k])
+                        rec.y = y
+                        rec.p = base_p
+                        rec.t = tcur
+                        n_ev += 1
+                base_x += size
+        elif typ == 0xA:  # EXT_TRIGGER: value bit 0, channel bits 11..8
+            if n_tr >= cap_tr:
+                status = STATUS_FULL
+                break
+            tr = triggers[n_tr]
+            tr.t = tcur
+            tr.rising = (w & 1) == 1
+            tr.id = (w >> 8) & 0xF
+            n_tr += 1
+        else:
+            # EVT_ADDR_Y (0x0), non-CD row (0x1), EVT_ADDR_X (0x2), VECT_BASE_X (0x3),
+            # EVT_TIME_LOW (0x6), EVT_TIME_HIGH (0x8) as selects; CONTINUED_4 (0x7),
+            # IMU (0xD), OTHERS (0xE), CONTINUED_12 (0xF) and the unused types carry
+            # nothing for CD events or triggers and change nothing.
+            v = w & 0x7FF
+            pol = ((w >> 10) & 2) - 1  # bit 11: 1 -> +1, 0 -> -1
+            rec = events[n_ev]
+            rec.x = v
+            rec.y = y
+            rec.p = pol
+            rec.t = tcur
+            ok = np.int64(typ == 0x2) & row_ok
+            if ok == 1 and (v >= width or y >= height):
+                state[S_ERR_X] = v
+                state[S_ERR_Y] = y
+                status = STATUS_BAD_X if v >= width else STATUS_BAD_Y
+                break
+            n_ev += ok
+            is_y = typ == 0x0  # bit 11 of EVT_ADDR_Y is the system type, not part of y
+            y = v if is_y else y
+            row_ok = 1 if is_y else (0 if typ == 0x1 else row_ok)
+            is_base = typ == 0x3
+            base_x = v if is_base else base_x
+            base_p = pol if is_base else base_p
+            has_base = 1 if is_base else has_base
+            # TIME_HIGH: a fall of 2048 or more is a 24-bit wrap; a new value resets
+            # TIME_LOW to 0 until the next TIME_LOW word (OpenEB's rule).
+            w12 = w & 0xFFF
+            high = (tcur >> 12) & 0xFFF
+            loop = (tcur >> 24) + np.int64(high >= 2048 + w12)
+            t_high = (loop << 24) | (w12 << 12) | ((tcur & 0xFFF) if high == w12 else 0)
+            t_low = (tcur & ~np.int64(0xFFF)) | w12
+            tcur = t_low if typ == 0x6 else (t_high if typ == 0x8 else tcur)
+        pos += 1
+    state[S_STARTED] = started
+    state[S3_LOOP] = tcur >> 24
+    state[S3_HIGH] = (tcur >> 12) & 0xFFF
+    state[S3_LOW] = tcur & 0xFFF
+    state[S3_Y] = y
+    state[S3_ROW_OK] = row_ok
+    state[S3_BASE_X] = base_x
+    state[S3_BASE_P] = base_p
+    state[S3_HAS_BASE] = has_base
+    return status, pos, n_ev, n_tr
+
+
+@njit(cache=True, nogil=True, boundscheck=False)
+def decode_evt2(words, pos, state, width, height, events, n_ev, limit, triggers, n_tr):
+    """Decode EVT 2.0 32-bit words from ``pos``; see the module docstring for the contract.
+
+    Time is ``t = (TIME_HIGH << 6) + ts6`` µs (34 bits), plus ``2**34`` µs per wrap:
+    a TIME_HIGH whose time falls by at least ``(2**28 - 1) * 2**6 - 10000`` µs counts
+    a wrap (OpenEB's rule).
+    """
+    n = words.shape[0]
+    cap_tr = triggers.shape[0]
+    started = state[S_STARTED]
+    base = state[S2_BASE]
+    shift = state[S2_SHIFT]
+    stop = events.shape[0] - 1
+    if limit < stop:
+        stop = limit
+    status = STATUS_DONE
+    while pos < n:
+        if n_ev >= stop:
+            status = STATUS_FULL
+            break
+        w = np.int64(words[pos])
+        typ = w >> 28
+        if started == 0:
+            if typ == 0x8:
+                started = 1
+                base = (w & 0xFFFFFFF) << 6
+                shift = 0
+            pos += 1
+            continue
+        if typ == 0x0 or typ == 0x1:  # CD_OFF / CD_ON
+            x = (w >> 11) & 0x7FF
+            y = w & 0x7FF
+            if x >= width or y >= height:
+                state[S_ERR_X] = x
+                state[S_ERR_Y] = y
+                status = STATUS_BAD_X if x >= width else STATUS_BAD_Y
+                break
+            rec = events[n_ev]
+            rec.x = x
+            rec.y = y
+            rec.p = 1 if typ == 0x1 else -1
+            rec.t = base + ((w >> 22) & 0x3F)
+            n_ev += 1
+        elif typ == 0x8:  # EVT_TIME_HIGH
+            new_base = ((w & 0xFFFFFFF) << 6) + shift
+            if new_base < base and base - new_base >= _EVT2_MAX_TIMESTAMP - _EVT2_LOOP_THRESHOLD:
+                shift += _EVT2_TIME_LOOP
+                new_base += _EVT2_TIME_LOOP
+            base = new_base
+        elif typ == 0xA:  # EXT_TRIGGER: value bit 0, channel bits 12..8, ts6 bits 27..22
+            if n_tr >= cap_tr:
+                status = STATUS_FULL
+                break
+            tr = triggers[n_tr]
+            tr.t = base + ((w >> 22) & 0x3F)
+            tr.rising = (w & 1) == 1
+            tr.id = (w >> 8) & 0x1F
+            n_tr += 1
+        # IMU (0xD), OTHERS (0xE), CONTINUED (0xF) and reserved types: ignored.
+        pos += 1
+    state[S_STARTED] = started
+    state[S2_BASE] = base
+    state[S2_SHIFT] = shift
+    return status, pos, n_ev, n_tr
+
+
+@njit(cache=True, nogil=True, boundscheck=False)
+def decode_evt21(halves, legacy, pos, state, width, height, events, n_ev, limit, triggers, n_tr):
+    """Decode EVT 2.1 64-bit words given as pairs of 32-bit halves; ``pos`` counts 64-bit words.
+
+    Standard layout (``legacy == 0``): the word is one little-endian 64-bit integer,
+    ``valid`` mask in bits 31..0, y in 42..32, x in 53..43, ts6 in 59..54, type in
+    63..60. Legacy layout (``legacy == 1``, IMX636 and older Prophesee systems): the
+    two 32-bit halves are stored the other way round. Event ``i`` of a vector word
+    is at column ``x + i`` for each set bit ``i`` of ``valid``.
+    """
+    n = halves.shape[0] // 2
+    cap_tr = triggers.shape[0]
+    started = state[S_STARTED]
+    last = state[S21_LAST]
+    stop = events.shape[0] - 32
+    if limit < stop:
+        stop = limit
+    status = STATUS_DONE
+    while pos < n:
+        if n_ev >= stop:
+            status = STATUS_FULL
+            break
+        if legacy == 1:
+            hi = np.int64(halves[2 * pos])
+            lo = np.int64(halves[2 * pos + 1])
+        else:
+            lo = np.int64(halves[2 * pos])
+            hi = np.int64(halves[2 * pos + 1])
+        typ = hi >> 28
+        if started == 0:
+            if typ == 0x8:
+                started = 1
+                last = (hi & 0xFFFFFFF) << 6
+            pos += 1
+            continue
+        if typ == 0x0 or typ == 0x1:  # EVT_NEG / EVT_POS, 32-pixel vector
+            last = (last & ~np.int64(0x3F)) + ((hi >> 22) & 0x3F)
+            if lo != 0:
+                x0 = (hi >> 11) & 0x7FF
+                y = hi & 0x7FF
+                if y >= height:
+                    state[S_ERR_X] = x0 + _first_bit_at_or_above(lo, 0)
+                    state[S_ERR_Y] = y
+                    status = STATUS_BAD_Y
+                    break
+                if x0 + 32 > width:
+                    first_bad = _first_bit_at_or_above(lo, max(width - x0, 0))
+                    if first_bad >= 0:
+                        state[S_ERR_X] = x0 + first_bad
+                        state[S_ERR_Y] = y
+                        status = STATUS_BAD_X
+                        break
+                p = 1 if typ == 0x1 else -1
+                for part in range(3):  # bits 0..11, 12..23, 24..31
+                    mask = (lo >> (12 * part)) & 0xFFF
+                    cnt = np.int64(_POP12[mask])
+                    for k in range(cnt):
+                        rec = events[n_ev]
+                        rec.x = x0 + 12 * part + np.int64(_BITS12[mask * 12 + k])
+                        rec.y = y
+                        rec.p = p
+                        rec.t = last
+                        n_ev += 1
+        elif typ == 0x8:  # EVT_TIME_HIGH: bits 33..6 of the time
+            t_high = (hi & 0xFFFFFFF) << 6
+            last_high = last & _EVT21_HIGH_MASK
+            n_loop = last >> 34
+            if t_high < last_high and last_high - t_high >= _EVT21_HIGH_MASK:
+                n_loop += 1
+            if t_high != last_high:
+                last = t_high | (n_loop << 34)
+        elif typ == 0xA:  # EXT_TRIGGER
+            if n_tr >= cap_tr:
+                status = STATUS_FULL
+                break
+            last = (last & ~np.int64(0x3F)) + ((hi >> 22) & 0x3F)
+            tr = triggers[n_tr]
+            tr.t = last
+            tr.rising = (hi & 1) == 1
+            tr.id = (hi >> 8) & 0x1F
+            n_tr += 1
+        # OTHERS (0xE), CONTINUED (0xF) and reserved types: ignored.
+        pos += 1
+    state[S_STARTED] = started
+    state[S21_LAST] = last
+    return status, pos, n_ev, n_tr
+
+
+# EVT 3.0 encoder state.
+E_STARTED = 0
+E_HIGH = 1  # full time-high (t >> 12) of the last TIME_HIGH written
+E_LOW = 2  # TIME_LOW the decoder holds
+E_Y = 3  # row the decoder holds, -1 for none
+ENCODER_STATE_SIZE = 4
+
+# TIME_HIGH values the writer steps through between two words: every value, as a
+# sensor emits them. OpenEB counts a wrap on any fall of 2048 or more, but other
+# decoders (faery 0.7.1) only follow single steps, so the writer never skips one.
+_HIGH_STEP = 1
+# Below this the first TIME_HIGH value is written directly; beyond it the stream
+# starts at 0 and steps up.
+_FIRST_HIGH_DIRECT = 4094
+# Shortest run of same-time, same-row, same-polarity events written as a vector.
+_MIN_VECTOR_RUN = 5
+
+
+@njit(cache=True, nogil=True, boundscheck=False)
+def encode_evt3(events, triggers, i, j, state, width, out):
+    """Encode time-sorted events and triggers, interleaved by time, into EVT 3.0 words.
+
+    Resumable: returns ``(status, i, j, n_words)`` where ``i`` and ``j`` are the
+    next event and trigger to write; ``STATUS_FULL`` means ``out`` needs emptying.
+    Triggers come before events of the same time. Time-high words step through
+    every value between two items (one word per 4096 µs of gap), as a sensor
+    writes them, so that every EVT 3.0 decoder follows the wraps. Runs of at least
+    five events with the same time, row and polarity and increasing columns inside
+    one 32-column group become VECT_BASE_X + VECT_12 + VECT_12 + VECT_8; other
+    events become EVT_ADDR_X words. ``STATUS_BAD_TIME`` means time went back.
+    """
+    ne = events.shape[0]
+    nt = triggers.shape[0]
+    cap = out.shape[0]
+    n = 0
+    started = state[E_STARTED]
+    cur_high = state[E_HIGH]
+    low = state[E_LOW]
+    cur_y = state[E_Y]
+    status = STATUS_DONE
+    while i < ne or j < nt:
+        if n + 16 > cap:
+            status = STATUS_FULL
+            break
+        take_trigger = False
+        if j < nt:
+            if i >= ne or triggers[j].t <= events[i].t:
+                take_trigger = True
+        t = triggers[j].t if take_trigger else events[i].t
+        high = t >> 12
+        if started == 1 and high < cur_high:
+            status = STATUS_BAD_TIME
+            break
+        if started == 0 or high != cur_high:
+            if started == 0:
+                cur_high = high if high < _FIRST_HIGH_DIRECT else 0
+                started = 1
+            else:
+                cur_high += _HIGH_STEP
+            out[n] = np.uint16(0x8000 | (cur_high & 0xFFF))
+            n += 1
+            low = 0
+            continue  # re-check capacity; more steps may follow
+        lo = t & 0xFFF
+        if lo != low:
+            out[n] = np.uint16(0x6000 | lo)
+            n += 1
+            low = lo
+        if take_trigger:
+            tr = triggers[j]
+            out[n] = np.uint16(0xA000 | ((np.int64(tr.id) & 0xF) << 8) | (1 if tr.rising else 0))
+            n += 1
+            j += 1
+            continue
+        ev = events[i]
+        y = np.int64(ev.y)
+        x = np.int64(ev.x)
+        pol = 1 if ev.p > 0 else 0
+        if y != cur_y:
+            out[n] = np.uint16(y & 0x7FF)
+            n += 1
+            cur_y = y
+        # Look for a vector run starting at event i.
+        base = x & ~np.int64(31)
+        k = 1
+        if base + 32 <= width:
+            last_x = x
+            while i + k < ne and k < 32:
+                e2 = events[i + k]
+                x2 = np.int64(e2.x)
+                if (
+                    e2.t != t
+                    or np.int64(e2.y) != y
+                    or (1 if e2.p > 0 else 0) != pol
+                    or x2 <= last_x
+                    or x2 >= base + 32
+                ):
+                    break
+                last_x = x2
+                k += 1
+        if k >= _MIN_VECTOR_RUN:
+            mask = np.int64(0)
+            for m in range(k):
+                mask |= np.int64(1) << (np.int64(events[i + m].x) - base)
+            out[n] = np.uint16(0x3000 | (pol << 11) | base)
+            out[n + 1] = np.uint16(0x4000 | (mask & 0xFFF))
+            out[n + 2] = np.uint16(0x4000 | ((mask >> 12) & 0xFFF))
+            out[n + 3] = np.uint16(0x5000 | ((mask >> 24) & 0xFF))
+            n += 4
+            i += k
+        else:
+            out[n] = np.uint16(0x2000 | (pol << 11) | x)
+            n += 1
+            i += 1
+    state[E_STARTED] = started
+    state[E_HIGH] = cur_high
+    state[E_LOW] = low
+    state[E_Y] = cur_y
+    return status, i, j, n

@@ -1,0 +1,854 @@
+"""Prophesee ``.raw`` files: EVT 2.0, EVT 2.1 and EVT 3.0 read, EVT 3.0 write, with triggers.
+
+A ``.raw`` file is a text header (lines starting with ``%``, closed by ``% end``
+when present) followed by the event stream:
+
+- EVT 2.0: 32-bit words; CD_OFF / CD_ON carry x, y and the 6 low bits of the
+  time, EVT_TIME_HIGH the 28 bits above them, EXT_TRIGGER an input edge.
+- EVT 2.1: 64-bit words; each CD word is a vector of 32 columns starting at x
+  (one validity bit per column), all of the same polarity and time.
+- EVT 3.0: 16-bit words that update a decoder state (row, vector base column,
+  time low and high 12-bit halves of a 24-bit time) and emit single events
+  (EVT_ADDR_X) or vectors (VECT_12, VECT_8), and EXT_TRIGGER edges.
+
+Decoding follows the published format specifications and OpenEB's decoders:
+words before the first time-high word are dropped (they cannot be timed), time
+wraps are counted as OpenEB counts them, and an EVT 3.0 TIME_LOW that steps back
+sets the time back, so that decoded times stay in file order and may be
+non-monotone (:func:`asynhdr.events.sort_events` sorts them where needed).
+
+Events come out in the project's dtype (``x, y`` uint16, ``p`` int8 +1 ON / -1
+OFF, ``t`` int64 µs); trigger edges in ``TRIGGER_DTYPE`` (``t`` µs, ``rising`` the
+edge's value bit, ``id`` the input channel). An event outside the sensor
+geometry, an unknown format or a missing geometry raises ``ValueError`` naming
+the file (and the byte offset and pixel where there is one).
+
+The sensor geometry comes from the header (``% geometry WxH``, or ``width`` and
+``height`` in ``% format``), else from ``width=``/``height=`` arguments, else from
+the sensor the header names (``% sensor_generation``, ``% generation``,
+``% sensor_name``, a Prophesee ``% system_ID``, ``% plugin_name``).
+
+:class:`Evt3Writer` and :func:`write_raw_evt3` write EVT 3.0 (events and
+triggers interleaved in time), atomically.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+from collections.abc import Iterator
+from pathlib import Path
+from types import TracebackType
+from typing import Any, BinaryIO
+
+import numpy as np
+
+from asynhdr._atomic import atomic_path
+from asynhdr.events import (
+    EVENT_DTYPE,
+    TRIGGER_DTYPE,
+    Recording,
+    empty_triggers,
+    validate_events,
+    validate_triggers,
+)
+from asynhdr.io import _evt_kernels as _k
+
+__all__ = [
+    "SUPPORTED_RAW_FORMATS",
+    "Evt3Writer",
+    "iter_raw",
+    "raw_info",
+    "read_raw",
+    "write_raw_evt3",
+]
+
+logger = logging.getLogger(__name__)
+
+SUPPORTED_RAW_FORMATS: tuple[str, ...] = ("evt2", "evt21", "evt3")
+"""Event formats this module decodes (EVT 2.0, EVT 2.1, EVT 3.0); it writes ``evt3``."""
+
+_FORMAT_TITLES = {"evt2": "EVT 2.0", "evt21": "EVT 2.1", "evt3": "EVT 3.0"}
+_SUPPORTED_TEXT = (
+    "supported formats: EVT 2.0 ('% evt 2.0' or '% format EVT2;...'), "
+    "EVT 2.1 ('% evt 2.1' or '% format EVT21;...'), "
+    "EVT 3.0 ('% evt 3.0' or '% format EVT3;...')"
+)
+# Bytes per payload word.
+_WORD_BYTES = {"evt2": 4, "evt21": 8, "evt3": 2}
+# Spare event records a kernel keeps free in its buffer (at least the most events
+# one payload word can produce).
+_SPARE_EVENTS = {"evt2": 1, "evt21": 32, "evt3": 32}
+# Format names in '% format NAME;...' and values of '% evt ...'.
+_FORMAT_NAMES = {"EVT2": "evt2", "EVT21": "evt21", "EVT3": "evt3"}
+_LEGACY_EVT_VALUES = {"2.0": "evt2", "2.1": "evt21", "3.0": "evt3"}
+
+_MAX_HEADER_BYTES = 16 << 20
+_MAX_COORDINATE = 2048  # 11-bit addresses in every EVT format
+_DEFAULT_BLOCK_BYTES = 1 << 22
+
+# Sensor geometry (width, height) by what a header names.
+_VGA = (640, 480)
+_HD = (1280, 720)
+_GENX320 = (320, 320)
+_GEOMETRY_BY_GENERATION = {"3": _VGA, "4": _HD, "320": _GENX320}
+_GEOMETRY_BY_SENSOR_NAME = (  # substring of the lower-case name -> geometry
+    ("genx320", _GENX320),
+    ("imx8", _GENX320),
+    ("imx636", _HD),
+    ("gen4", _HD),
+    ("gen3", _VGA),
+)
+_GEOMETRY_BY_PLUGIN = (  # substring of the lower-case plugin / camera name -> geometry
+    ("genx320", _GENX320),
+    ("imx8", _GENX320),
+    ("imx636", _HD),
+    ("evk4", _HD),
+    ("gen4", _HD),  # gen4 and gen41
+    ("gen3", _VGA),  # gen3 and gen31
+)
+# Prophesee system IDs (decimal in headers) of the sensors whose geometry is known.
+_GEOMETRY_BY_SYSTEM_ID = {
+    **dict.fromkeys(
+        (0x15, 0x17, 0x97, 0x19, 0x99, 0x1D, 0x21, 0xA1, 0x1C, 0x23, 0x22, 0xA2, 0x29, 0x28), _VGA
+    ),
+    **dict.fromkeys((0x1A, 0x9A, 0x1E, 0x2E, 0x20, 0x1F, 0x27, 0x30), _HD),
+    **dict.fromkeys((0x31, 0x32, 0x3A, 0x42), _HD),
+    **dict.fromkeys((0x3B, 0x40), _GENX320),
+}
+# EVT 2.1 from Prophesee systems older than this ID stores its 32-bit halves swapped.
+_EVT21_LEGACY_BEFORE_SYSTEM_ID = 0x37
+
+
+# --------------------------------------------------------------------------------------
+# Header
+# --------------------------------------------------------------------------------------
+
+
+def _read_header(f: BinaryIO, name: str) -> tuple[list[str], int]:
+    """Return the '%' lines at the start of ``f`` (without '%') and the payload offset."""
+    lines: list[str] = []
+    buf = b""
+    pos = 0  # offset of buf[0] in the file
+    f.seek(0)
+    while True:
+        # Make sure buf holds the next byte, then the whole line if it is a header line.
+        if len(buf) == 0:
+            buf = f.read(1 << 16)
+            if not buf:
+                return lines, pos
+        if buf[:1] != b"%":
+            return lines, pos
+        nl = buf.find(b"\n")
+        while nl < 0:
+            more = f.read(1 << 16)
+            if not more:
+                break
+            buf += more
+            nl = buf.find(b"\n")
+            if pos + len(buf) > _MAX_HEADER_BYTES:
+                raise ValueError(
+                    f"{name}: header line at byte {pos} runs past {_MAX_HEADER_BYTES} bytes "
+                    "without a newline; not a Prophesee .raw file"
+                )
+        end = len(buf) if nl < 0 else nl + 1
+        raw_line = buf[:end]
+        buf = buf[end:]
+        pos += end
+        if pos > _MAX_HEADER_BYTES:
+            raise ValueError(
+                f"{name}: header is longer than {_MAX_HEADER_BYTES} bytes; "
+                "not a Prophesee .raw file"
+            )
+        text = raw_line.decode("utf-8", errors="replace").rstrip("\r\n")
+        body = text[1:].strip()
+        if body == "end":
+            return lines, pos
+        lines.append(body)
+
+
+def _parse_fields(lines: list[str]) -> dict[str, str]:
+    """Header lines 'key value' -> dict (a later line with the same key wins)."""
+    fields: dict[str, str] = {}
+    for line in lines:
+        if not line:
+            continue
+        parts = line.split(None, 1)
+        fields[parts[0]] = parts[1].strip() if len(parts) > 1 else ""
+    return fields
+
+
+def _field(fields: dict[str, str], key: str) -> str | None:
+    """Case-insensitive header lookup."""
+    if key in fields:
+        return fields[key]
+    low = key.lower()
+    for k, v in fields.items():
+        if k.lower() == low:
+            return v
+    return None
+
+
+def _parse_int(text: str, name: str, what: str) -> int:
+    try:
+        return int(text.strip(), 0)
+    except ValueError:
+        try:
+            return int(text.strip(), 10)
+        except ValueError:
+            raise ValueError(f"{name}: header {what} {text!r} is not an integer") from None
+
+
+def _check_geometry(width: int, height: int, name: str, source: str) -> tuple[int, int]:
+    if not (1 <= width <= _MAX_COORDINATE and 1 <= height <= _MAX_COORDINATE):
+        raise ValueError(
+            f"{name}: geometry {width}x{height} from {source} is outside 1..{_MAX_COORDINATE} "
+            "pixels per side (the EVT formats address at most 2048x2048)"
+        )
+    return width, height
+
+
+def _format_from_header(fields: dict[str, str], name: str) -> tuple[str, dict[str, str]]:
+    """Return the format key ('evt2', 'evt21', 'evt3') and the '% format' options."""
+    fmt_line = _field(fields, "format")
+    options: dict[str, str] = {}
+    if fmt_line:
+        parts = [s.strip() for s in fmt_line.split(";")]
+        fmt_name = parts[0].upper()
+        for opt in parts[1:]:
+            if "=" in opt:
+                k, v = opt.split("=", 1)
+                options[k.strip().lower()] = v.strip()
+        if fmt_name not in _FORMAT_NAMES:
+            raise ValueError(
+                f"{name}: header '% format {fmt_line}' names an event format this reader "
+                f"does not decode; {_SUPPORTED_TEXT}"
+            )
+        return _FORMAT_NAMES[fmt_name], options
+    evt = _field(fields, "evt")
+    if evt is not None:
+        key = _LEGACY_EVT_VALUES.get(evt.strip())
+        if key is None:
+            raise ValueError(
+                f"{name}: header '% evt {evt}' names an event format this reader does not "
+                f"decode; {_SUPPORTED_TEXT}"
+            )
+        return key, options
+    if not fields:
+        raise ValueError(
+            f"{name}: no Prophesee header ('% ...' lines) at the start of the file; "
+            f"{_SUPPORTED_TEXT}"
+        )
+    raise ValueError(
+        f"{name}: header has neither a '% format' nor a '% evt' line, so the event format "
+        f"is unknown; {_SUPPORTED_TEXT}"
+    )
+
+
+def _integrator_is_prophesee(fields: dict[str, str]) -> bool:
+    names = [
+        _field(fields, k)
+        for k in ("camera_integrator_name", "plugin_integrator_name", "integrator_name")
+    ]
+    given = [n for n in names if n]
+    return all(n.strip().lower() == "prophesee" for n in given)
+
+
+def _geometry_from_sensor(fields: dict[str, str]) -> tuple[tuple[int, int], str] | None:
+    """Sensor geometry from what the header says about the camera, or None."""
+    for key in ("sensor_generation", "generation"):
+        gen = _field(fields, key)
+        if gen:
+            major = gen.strip().split(".")[0]
+            if major in _GEOMETRY_BY_GENERATION:
+                return _GEOMETRY_BY_GENERATION[major], f"'% {key} {gen}'"
+    sensor_name = _field(fields, "sensor_name")
+    if sensor_name:
+        low = sensor_name.lower()
+        for sub, geom in _GEOMETRY_BY_SENSOR_NAME:
+            if sub in low:
+                return geom, f"'% sensor_name {sensor_name}'"
+    system_id = _field(fields, "system_ID")
+    if system_id and _integrator_is_prophesee(fields):
+        try:
+            sid = int(system_id.strip(), 10)
+        except ValueError:
+            sid = -1
+        if sid in _GEOMETRY_BY_SYSTEM_ID:
+            return _GEOMETRY_BY_SYSTEM_ID[sid], f"'% system_ID {system_id}'"
+    for key in ("plugin_name", "camera_integrator_name", "integrator_name"):
+        value = _field(fields, key)
+        if value:
+            low = value.lower()
+            for sub, geom in _GEOMETRY_BY_PLUGIN:
+                if sub in low:
+                    return geom, f"'% {key} {value}'"
+    return None
+
+
+def _resolve_geometry(
+    fields: dict[str, str],
+    options: dict[str, str],
+    name: str,
+    width: int | None,
+    height: int | None,
+) -> tuple[int, int, str]:
+    """Geometry from the header, else the arguments, else the sensor table."""
+    if (width is None) != (height is None):
+        raise ValueError(f"{name}: give both width and height, or neither")
+    if width is not None and height is not None:
+        width, height = int(width), int(height)
+        _check_geometry(width, height, name, "the arguments")
+    header_geom: tuple[int, int] | None = None
+    source = ""
+    if "width" in options and "height" in options:
+        header_geom = (
+            _parse_int(options["width"], name, "format width"),
+            _parse_int(options["height"], name, "format height"),
+        )
+        source = "'% format' line"
+    geometry = _field(fields, "geometry")
+    if geometry:
+        parts = geometry.lower().split("x")
+        if len(parts) != 2:
+            raise ValueError(
+                f"{name}: header '% geometry {geometry}' is not of the form WIDTHxHEIGHT"
+            )
+        geom = (
+            _parse_int(parts[0], name, "geometry width"),
+            _parse_int(parts[1], name, "geometry height"),
+        )
+        if header_geom is not None and header_geom != geom:
+            raise ValueError(
+                f"{name}: header geometry {geom[0]}x{geom[1]} ('% geometry') disagrees with "
+                f"{header_geom[0]}x{header_geom[1]} ('% format' line)"
+            )
+        header_geom, source = geom, "'% geometry' line"
+    if header_geom is not None:
+        _check_geometry(header_geom[0], header_geom[1], name, f"the header {source}")
+        if width is not None and (width, height) != header_geom:
+            raise ValueError(
+                f"{name}: header says {header_geom[0]}x{header_geom[1]} ({source}) but the "
+                f"arguments say width={width}, height={height}"
+            )
+        return header_geom[0], header_geom[1], f"header {source}"
+    if width is not None and height is not None:
+        return width, height, "arguments"
+    found = _geometry_from_sensor(fields)
+    if found is not None:
+        (w, h), why = found
+        return w, h, f"sensor table ({why})"
+    raise ValueError(
+        f"{name}: the header gives no sensor geometry (no '% geometry' line, no width/height "
+        "in '% format') and names no sensor this reader knows; pass width=... and height=... "
+        "(pixels)"
+    )
+
+
+def _evt21_legacy(fields: dict[str, str], options: dict[str, str]) -> bool:
+    """Whether EVT 2.1 words are stored with their 32-bit halves swapped (OpenEB's rule)."""
+    endianness = options.get("endianness") or _field(fields, "endianness")
+    if endianness:
+        return endianness.strip().lower() == "legacy"
+    system_id = _field(fields, "system_ID")
+    if system_id and _integrator_is_prophesee(fields):
+        try:
+            sid = int(system_id.strip(), 10)
+        except ValueError:
+            return False
+        return 0 < sid < _EVT21_LEGACY_BEFORE_SYSTEM_ID
+    return False
+
+
+class _RawInfo:
+    """Everything the header says that decoding needs."""
+
+    def __init__(self, path: str | os.PathLike[str], width: int | None, height: int | None):
+        self.path = Path(path)
+        self.name = str(path)
+        try:
+            f = open(self.path, "rb")
+        except FileNotFoundError:
+            raise FileNotFoundError(f"{self.name}: no such file") from None
+        except OSError as exc:
+            raise ValueError(f"{self.name}: cannot open: {exc.strerror or exc}") from exc
+        with f:
+            lines, self.header_bytes = _read_header(f, self.name)
+            f.seek(0, os.SEEK_END)
+            self.file_bytes = f.tell()
+        self.fields = _parse_fields(lines)
+        self.format, options = _format_from_header(self.fields, self.name)
+        self.width, self.height, self.geometry_source = _resolve_geometry(
+            self.fields, options, self.name, width, height
+        )
+        self.legacy = self.format == "evt21" and _evt21_legacy(self.fields, options)
+        self.word_bytes = _WORD_BYTES[self.format]
+        payload = self.file_bytes - self.header_bytes
+        self.n_words = payload // self.word_bytes
+        self.trailing_bytes = payload - self.n_words * self.word_bytes
+
+    def as_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "format": self.format,
+            "width": self.width,
+            "height": self.height,
+            "header": dict(self.fields),
+            "geometry_source": self.geometry_source,
+            "header_bytes": self.header_bytes,
+            "payload_bytes": self.file_bytes - self.header_bytes,
+            "words": self.n_words,
+        }
+        if self.format == "evt21":
+            out["evt21_layout"] = "legacy" if self.legacy else "standard"
+        return out
+
+
+def raw_info(
+    path: str | os.PathLike[str], *, width: int | None = None, height: int | None = None
+) -> dict[str, Any]:
+    """Describe a ``.raw`` file from its header, without decoding the payload.
+
+    Returns a dict with ``format`` (one of :data:`SUPPORTED_RAW_FORMATS`), ``width``
+    and ``height`` (pixels), ``header`` (every ``% key value`` field), and
+    ``geometry_source``, ``header_bytes``, ``payload_bytes``, ``words`` (payload
+    words of 2, 4 or 8 bytes) and, for EVT 2.1, ``evt21_layout``.
+
+    Geometry comes from the header (``% geometry WxH`` or ``width``/``height`` in
+    ``% format``), else from ``width``/``height``, else from the sensor the header
+    names (generation, sensor name, Prophesee system ID, plugin name); otherwise
+    ``ValueError`` asks for ``width`` and ``height``.
+    """
+    return _RawInfo(path, width, height).as_dict()
+
+
+# --------------------------------------------------------------------------------------
+# Decoding
+# --------------------------------------------------------------------------------------
+
+
+def _new_state(fmt: str) -> np.ndarray:
+    size = {"evt2": _k.EVT2_STATE_SIZE, "evt21": _k.EVT21_STATE_SIZE, "evt3": _k.EVT3_STATE_SIZE}
+    return np.zeros(size[fmt], dtype=np.int64)
+
+
+def _run_kernel(
+    info: _RawInfo,
+    words: np.ndarray,
+    pos: int,
+    state: np.ndarray,
+    events: np.ndarray,
+    n_ev: int,
+    limit: int,
+    triggers: np.ndarray,
+    n_tr: int,
+) -> tuple[int, int, int, int]:
+    if info.format == "evt3":
+        res = _k.decode_evt3(
+            words, pos, state, info.width, info.height, events, n_ev, limit, triggers, n_tr
+        )
+    elif info.format == "evt2":
+        res = _k.decode_evt2(
+            words, pos, state, info.width, info.height, events, n_ev, limit, triggers, n_tr
+        )
+    else:
+        res = _k.decode_evt21(
+            words,
+            1 if info.legacy else 0,
+            pos,
+            state,
+            info.width,
+            info.height,
+            events,
+            n_ev,
+            limit,
+            triggers,
+            n_tr,
+        )
+    return int(res[0]), int(res[1]), int(res[2]), int(res[3])
+
+
+def _raise_decode_error(
+    info: _RawInfo, status: int, word_index: int, state: np.ndarray
+) -> None:
+    offset = info.header_bytes + word_index * info.word_bytes
+    x, y = int(state[_k.S_ERR_X]), int(state[_k.S_ERR_Y])
+    title = _FORMAT_TITLES[info.format]
+    if status == _k.STATUS_BAD_X:
+        what = f"x={x} is outside the sensor (width={info.width})"
+    elif status == _k.STATUS_BAD_Y:
+        what = f"y={y} is outside the sensor (height={info.height})"
+    else:
+        what = f"decoder status {status}"
+    raise ValueError(
+        f"{info.name}: {title} word at byte offset {offset} gives an event at (x={x}, y={y}): "
+        f"{what}; the file is corrupt or its geometry {info.width}x{info.height} "
+        f"(from {info.geometry_source}) is wrong"
+    )
+
+
+def _grow(arr: np.ndarray, n_used: int, min_size: int) -> np.ndarray:
+    new = np.empty(max(min_size, 2 * arr.shape[0]), dtype=arr.dtype)
+    new[:n_used] = arr[:n_used]
+    return new
+
+
+def _kernel_view(info: _RawInfo, raw: np.ndarray) -> np.ndarray:
+    """Payload bytes -> the array a kernel takes (uint16, uint32, or uint32 pairs)."""
+    dtype = {"evt3": "<u2", "evt2": "<u4", "evt21": "<u4"}[info.format]
+    return raw.view(dtype)
+
+
+def _warn_trailing(info: _RawInfo) -> None:
+    if info.trailing_bytes:
+        logger.warning(
+            "%s: %d trailing byte(s) after the last whole %d-byte word ignored "
+            "(the file was cut mid-word)",
+            info.name,
+            info.trailing_bytes,
+            info.word_bytes,
+        )
+
+
+def _trim(arr: np.ndarray, n: int) -> np.ndarray:
+    """Shrink a freshly allocated buffer to ``n`` items without copying when possible."""
+    if arr.shape[0] == n:
+        return arr
+    try:
+        arr.resize(n, refcheck=False)
+        return arr
+    except ValueError:
+        return arr[:n].copy()
+
+
+def read_raw(
+    path: str | os.PathLike[str], *, width: int | None = None, height: int | None = None
+) -> Recording:
+    """Decode a whole ``.raw`` file (EVT 2.0, EVT 2.1 or EVT 3.0) into a :class:`Recording`.
+
+    Events keep file order; their times (µs) are those the stream encodes and may
+    step back where an EVT 3.0 stream does. Geometry as in :func:`raw_info`.
+    Triggers are sorted stably by time (a :class:`Recording` holds them sorted; a
+    stream whose trigger times step back is logged). ``metadata`` is
+    ``{"format": "evt3" | "evt2" | "evt21", "source": str(path), "header": {...}}``.
+
+    Raises ``ValueError`` naming the file for an unknown format, a missing
+    geometry, or an event outside the sensor (with its byte offset and pixel);
+    ``FileNotFoundError`` when there is no such file.
+    """
+    info = _RawInfo(path, width, height)
+    _warn_trailing(info)
+    with open(info.path, "rb") as f:
+        f.seek(info.header_bytes)
+        raw = np.fromfile(f, dtype=np.uint8, count=info.n_words * info.word_bytes)
+    if raw.size != info.n_words * info.word_bytes:
+        raise ValueError(
+            f"{info.name}: file shrank while being read ({raw.size} of "
+            f"{info.n_words * info.word_bytes} payload bytes)"
+        )
+    words = _kernel_view(info, raw)
+    state = _new_state(info.format)
+    spare = _SPARE_EVENTS[info.format]
+    capacity = (info.n_words if info.format != "evt21" else 2 * info.n_words) + spare + 1
+    events = np.empty(capacity, dtype=EVENT_DTYPE)
+    triggers = np.empty(64, dtype=TRIGGER_DTYPE)
+    pos = n_ev = n_tr = 0
+    while True:
+        status, pos, n_ev, n_tr = _run_kernel(
+            info, words, pos, state, events, n_ev, events.shape[0], triggers, n_tr
+        )
+        if status == _k.STATUS_DONE:
+            break
+        if status != _k.STATUS_FULL:
+            _raise_decode_error(info, status, pos, state)
+        if n_tr >= triggers.shape[0]:
+            triggers = _grow(triggers, n_tr, 64)
+        else:
+            events = _grow(events, n_ev, n_ev + 8 * spare)
+    events = _trim(events, n_ev)
+    triggers = triggers[:n_tr].copy()
+    tt = triggers["t"]
+    if tt.size > 1 and (tt[1:] < tt[:-1]).any():
+        order = np.argsort(tt, kind="stable")
+        moved = int(np.count_nonzero(order != np.arange(order.size)))
+        triggers = triggers[order]
+        logger.warning(
+            "%s: trigger times step back in the stream; %d of %d triggers sorted into time order",
+            info.name,
+            moved,
+            order.size,
+        )
+    logger.info(
+        "%s: %s, %dx%d, %d events, %d triggers",
+        info.name,
+        _FORMAT_TITLES[info.format],
+        info.width,
+        info.height,
+        n_ev,
+        n_tr,
+    )
+    metadata = {"format": info.format, "source": str(path), "header": dict(info.fields)}
+    return Recording(
+        events=events,
+        width=info.width,
+        height=info.height,
+        triggers=triggers,
+        metadata=metadata,
+    )
+
+
+def iter_raw(
+    path: str | os.PathLike[str],
+    *,
+    chunk_events: int = 1_000_000,
+    width: int | None = None,
+    height: int | None = None,
+    block_bytes: int = _DEFAULT_BLOCK_BYTES,
+) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """Decode a ``.raw`` file in chunks: yield ``(events, triggers)`` with memory flat in file size.
+
+    The payload is read in blocks of ``block_bytes`` bytes (a positive multiple of
+    8) and the decoder state (time base, row, vector base, polarity) is carried
+    from block to block, so the chunks concatenate to exactly what
+    :func:`read_raw` returns (triggers here keep file order; :func:`read_raw` sorts
+    them, which changes nothing unless their times step back). Every chunk but the
+    last holds exactly ``chunk_events`` events; triggers come in the chunk whose
+    words hold them. At least one chunk (possibly empty) is yielded. Errors as in
+    :func:`read_raw`.
+    """
+    if int(chunk_events) < 1:
+        raise ValueError(f"iter_raw: chunk_events must be >= 1, got {chunk_events}")
+    if int(block_bytes) < 8 or int(block_bytes) % 8:
+        raise ValueError(
+            f"iter_raw: block_bytes must be a positive multiple of 8, got {block_bytes}"
+        )
+    chunk_events = int(chunk_events)
+    info = _RawInfo(path, width, height)
+    _warn_trailing(info)
+    return _iter_chunks(info, chunk_events, int(block_bytes))
+
+
+def _iter_chunks(
+    info: _RawInfo, chunk_events: int, block_bytes: int
+) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    ws = info.word_bytes
+    state = _new_state(info.format)
+    ev_cap = chunk_events + _SPARE_EVENTS[info.format]
+    events = np.empty(ev_cap, dtype=EVENT_DTYPE)
+    triggers = np.empty(64, dtype=TRIGGER_DTYPE)
+    n_ev = n_tr = 0
+    yielded = False
+    block = bytearray(block_bytes)
+    block_view = memoryview(block)
+    block_array = np.frombuffer(block, dtype=np.uint8)
+    payload_left = info.n_words * ws
+    words_before = 0  # words of the payload decoded before this block
+    with open(info.path, "rb") as f:
+        f.seek(info.header_bytes)
+        while payload_left > 0:
+            want = min(block_bytes, payload_left)
+            filled = 0
+            while filled < want:
+                got = f.readinto(block_view[filled:want])
+                if not got:
+                    raise ValueError(
+                        f"{info.name}: file ended at byte "
+                        f"{info.header_bytes + words_before * ws + filled} while reading "
+                        "(was it truncated while being read?)"
+                    )
+                filled += got
+            payload_left -= want
+            words = _kernel_view(info, block_array[:want])
+            pos = 0
+            while True:
+                status, pos, n_ev, n_tr = _run_kernel(
+                    info, words, pos, state, events, n_ev, chunk_events, triggers, n_tr
+                )
+                if status == _k.STATUS_DONE:
+                    break
+                if status != _k.STATUS_FULL:
+                    _raise_decode_error(info, status, words_before + pos, state)
+                if n_ev >= chunk_events:
+                    out = events[:chunk_events]
+                    nxt = np.empty(ev_cap, dtype=EVENT_DTYPE)
+                    rest = n_ev - chunk_events
+                    nxt[:rest] = events[chunk_events:n_ev]
+                    yield out, triggers[:n_tr].copy()
+                    yielded = True
+                    events, n_ev, n_tr = nxt, rest, 0
+                else:
+                    triggers = _grow(triggers, n_tr, 64)
+            words_before += want // ws
+    if n_ev or n_tr or not yielded:
+        yield events[:n_ev], triggers[:n_tr].copy()
+
+
+# --------------------------------------------------------------------------------------
+# Writing EVT 3.0
+# --------------------------------------------------------------------------------------
+
+# Latest first time the writer accepts: a stream that starts later begins at
+# time-high 0 and steps up one word per 4096 µs (about 8 MB at this limit).
+_MAX_FIRST_TIME_US = 1 << 34
+_RESERVED_HEADER_KEYS = {"evt", "format", "geometry", "end"}
+
+
+class Evt3Writer:
+    """Stream events and triggers into an EVT 3.0 ``.raw`` file, atomically.
+
+    Use as a context manager; each :meth:`write` takes a time-sorted batch that
+    starts no earlier than the previous batch ended. Events and triggers are
+    interleaved by time in the stream (a trigger before events of the same µs).
+    The file appears under its name only when the ``with`` block ends without an
+    exception. Like a sensor, the stream carries a time-high word for every
+    4096 µs between items (so any EVT 3.0 decoder follows its 24-bit wraps): a gap
+    costs 2 bytes per 4.096 ms, and the first time must be below 2**34 µs.
+
+    The header holds ``% evt 3.0``, ``% format EVT3;height=H;width=W``,
+    ``% geometry WxH``, one ``% key value`` line per ``header_extra`` item, and
+    ``% end``.
+
+    Parameters
+    ----------
+    path : destination ``.raw`` file.
+    width, height : sensor geometry in pixels (1..2048).
+    header_extra : more header fields; keys without whitespace, values on one line.
+
+    Attributes ``events_written``, ``triggers_written`` and ``bytes_written`` (file
+    size so far, header included) count what has been written.
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        *,
+        width: int,
+        height: int,
+        header_extra: dict[str, Any] | None = None,
+    ) -> None:
+        self.path = Path(path)
+        self.width = int(width)
+        self.height = int(height)
+        _check_geometry(self.width, self.height, str(path), "the writer's arguments")
+        self._header = self._make_header(header_extra or {})
+        self._stack: contextlib.ExitStack | None = None
+        self._file: BinaryIO | None = None
+        self._state = np.zeros(_k.ENCODER_STATE_SIZE, dtype=np.int64)
+        self._state[_k.E_Y] = -1
+        self._last_t: int | None = None
+        self._buf = np.empty(1 << 20, dtype=np.uint16)
+        self.events_written = 0
+        self.triggers_written = 0
+        self.bytes_written = 0
+
+    def _make_header(self, extra: dict[str, Any]) -> bytes:
+        lines = [
+            "% evt 3.0",
+            f"% format EVT3;height={self.height};width={self.width}",
+            f"% geometry {self.width}x{self.height}",
+        ]
+        for key, value in extra.items():
+            k = str(key)
+            v = str(value)
+            if not k or any(c.isspace() for c in k) or k.startswith("%"):
+                raise ValueError(
+                    f"{self.path}: header_extra key {k!r} must be non-empty, without "
+                    "whitespace or '%'"
+                )
+            if k.lower() in _RESERVED_HEADER_KEYS:
+                raise ValueError(
+                    f"{self.path}: header_extra key {k!r} is written by the writer itself"
+                )
+            if "\n" in v or "\r" in v:
+                raise ValueError(f"{self.path}: header_extra value of {k!r} must be one line")
+            lines.append(f"% {k} {v}" if v else f"% {k}")
+        lines.append("% end")
+        return ("\n".join(lines) + "\n").encode("utf-8")
+
+    def __enter__(self) -> Evt3Writer:
+        stack = contextlib.ExitStack()
+        try:
+            tmp = stack.enter_context(atomic_path(self.path))
+            self._file = stack.enter_context(open(tmp, "wb"))
+            self._file.write(self._header)
+            self.bytes_written = len(self._header)
+        except BaseException:
+            stack.close()
+            raise
+        self._stack = stack
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        stack, self._stack, self._file = self._stack, None, None
+        if stack is not None:
+            stack.__exit__(exc_type, exc, tb)
+
+    def write(self, events: np.ndarray, triggers: np.ndarray | None = None) -> None:
+        """Append a batch of events (``EVENT_DTYPE``) and triggers (``TRIGGER_DTYPE``).
+
+        Both must be sorted by time, inside the geometry, with times >= 0 µs, trigger
+        channels 0..15, and no earlier than the last time already written.
+        """
+        if self._file is None:
+            raise ValueError(f"{self.path}: Evt3Writer.write called outside its 'with' block")
+        name = str(self.path)
+        events = validate_events(
+            events, width=self.width, height=self.height, require_sorted=True,
+            name=f"{name}: events",
+        )
+        if triggers is None:
+            triggers = empty_triggers()
+        triggers = validate_triggers(triggers, name=f"{name}: triggers")
+        if triggers.size and int(triggers["id"].max()) > 15:
+            raise ValueError(
+                f"{name}: trigger channel {int(triggers['id'].max())} does not fit EVT 3.0 "
+                "(channels 0..15)"
+            )
+        firsts = [int(a["t"][0]) for a in (events, triggers) if a.size]
+        if not firsts:
+            return
+        t_first = min(firsts)
+        if t_first < 0:
+            raise ValueError(f"{name}: times must be >= 0 µs, got {t_first} µs")
+        if self._last_t is None and t_first > _MAX_FIRST_TIME_US:
+            raise ValueError(
+                f"{name}: first time {t_first} µs is beyond {_MAX_FIRST_TIME_US} µs; "
+                "subtract a start time before writing"
+            )
+        if self._last_t is not None and t_first < self._last_t:
+            raise ValueError(
+                f"{name}: batch starts at t={t_first} µs, before the last time already "
+                f"written ({self._last_t} µs); batches must follow each other in time"
+            )
+        self._last_t = max(int(a["t"][-1]) for a in (events, triggers) if a.size)
+        events = np.ascontiguousarray(events)
+        triggers = np.ascontiguousarray(triggers)
+        i = j = 0
+        while True:
+            status, i, j, n = _k.encode_evt3(
+                events, triggers, i, j, self._state, self.width, self._buf
+            )
+            status, i, j, n = int(status), int(i), int(j), int(n)
+            self._file.write(self._buf[:n].data)
+            self.bytes_written += 2 * n
+            if status == _k.STATUS_DONE:
+                break
+            if status != _k.STATUS_FULL:  # time stepped back: validated above
+                raise ValueError(f"{name}: times step back at event {i}, trigger {j}")
+        self.events_written += int(events.size)
+        self.triggers_written += int(triggers.size)
+
+
+def write_raw_evt3(path: str | os.PathLike[str], recording: Recording) -> None:
+    """Write a recording (events and triggers sorted by time) as an EVT 3.0 ``.raw`` file.
+
+    Atomic: the file appears under ``path`` only once complete. Events out of time
+    order raise ``ValueError``; sort them first (:meth:`Recording.sorted`).
+    """
+    with Evt3Writer(path, width=recording.width, height=recording.height) as writer:
+        writer.write(recording.events, recording.triggers)
