@@ -138,7 +138,8 @@ def test_snr_and_dynamic_range_by_hand() -> None:
     assert st.mean.tolist() == [11.0, 5.0]
     assert st.snr_db[0] == pytest.approx(20 * math.log10(11.0))
     assert math.isinf(st.snr_db[1])
-    assert mean_snr_db(st, cap_db=100.0) == pytest.approx((20 * math.log10(11) + 100) / 2)
+    assert mean_snr_db(st) == pytest.approx(20 * math.log10(11))
+    assert math.isinf(mean_snr_db(PatchStats(mean=np.array([3.0]), std=np.array([0.0]))))
     # densities 0, 1, 2, 3; means distinguished except the last pair -> run 0..2
     st = PatchStats(mean=np.array([100.0, 10.0, 1.0, 0.9]), std=np.array([1, 1, 0.1, 0.5]))
     dr = dynamic_range(st, np.array([0.0, 1.0, 2.0, 3.0]))

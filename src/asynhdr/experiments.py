@@ -101,7 +101,7 @@ class ChartResult:
             out["methods"].append({
                 "method": r.method,
                 "with_cmap": r.with_cmap,
-                "mean_snr_db": r.mean_snr_db,
+                "mean_snr_db": r.mean_snr_db if np.isfinite(r.mean_snr_db) else None,
                 "dr_db": r.dr.dr_db,
                 "d_brightest": r.dr.d_brightest,
                 "d_darkest": r.dr.d_darkest,

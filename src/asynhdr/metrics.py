@@ -61,12 +61,18 @@ def patch_stats(image: np.ndarray, rois: Mapping[int, Roi]) -> PatchStats:
     return PatchStats(mean, std)
 
 
-def mean_snr_db(stats: PatchStats, *, cap_db: float = 100.0) -> float:
-    """Mean patch SNR in dB over the patches. Patches with zero noise count as ``cap_db``;
-    patches that are all zero (no signal, no noise: NaN) are left out."""
-    snr = np.minimum(stats.snr_db, cap_db)
-    snr = snr[~np.isnan(snr)]
-    return float(np.mean(snr)) if snr.size else float("nan")
+def mean_snr_db(stats: PatchStats) -> float:
+    """Mean patch SNR in dB over the patches that have noise.
+
+    Patches with zero noise (``sigma == 0``: infinite SNR, as every pixel of a patch of
+    a noise-free, mismatch-free sensor reads the same) and empty patches (NaN) are left
+    out; ``inf`` when no patch has noise.
+    """
+    snr = stats.snr_db
+    finite = snr[np.isfinite(snr)]
+    if finite.size:
+        return float(np.mean(finite))
+    return float("inf") if np.any(np.isposinf(snr)) else float("nan")
 
 
 @dataclass(frozen=True)

@@ -150,7 +150,7 @@ def demo(
 
     def pair(r: Any, m: str) -> str:
         a, b = r.get(m, False), r.get(m, True)
-        return f"{a.mean_snr_db:6.2f} / {b.mean_snr_db:6.2f}"
+        return f"{a.mean_snr_db:6.2f} / {b.mean_snr_db:6.2f}".replace("inf", "  inf")
 
     for m in (*WEIGHTINGS, "ttfe", "count"):
         try:
