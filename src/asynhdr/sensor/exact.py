@@ -148,16 +148,18 @@ def _pixel_runs(rho, d1, d2, pieces, runs):
 
 
 @nb.njit(cache=True, parallel=True)
-def _bounds(rho, c_on, c_off, t1, t2, pieces, c_scale, out_bound):
-    """Upper bound on each pixel's events in one cycle: log variation / (c * c_scale),
-    plus slack per run."""
+def _bounds(rho, c_on, c_off, t1, t2, pieces, c_scale, reset_sigma, out_bound):
+    """Upper bound on each pixel's events in one cycle: log variation over the pixel's
+    smallest effective step (threshold less six sigma of reset noise, times
+    ``c_scale``), plus slack per run."""
     d1 = t1[1:] - t1[:-1]
     d2 = t2[1:] - t2[:-1]
     npix = rho.shape[0]
     for p in nb.prange(npix):
         runs = np.empty((2 * pieces.shape[0], 3), dtype=np.int64)
         nr = _pixel_runs(rho[p], d1, d2, pieces, runs)
-        cmin = min(c_on[p], c_off[p]) * c_scale
+        cmin = min(c_on[p], c_off[p])
+        cmin = max(cmin - 6.0 * reset_sigma, 0.25 * cmin) * c_scale
         total = 0.0
         for k in range(nr):
             ea = rho[p] * t1[runs[k, 0]] + t2[runs[k, 0]]
@@ -409,14 +411,11 @@ def simulate_cycle_exact(
     nbins = t_hi - t_lo + 1
     tau_num = tau_ref_us * (cutoff_irradiance + dark_irradiance) if tau_ref_us > 0 else 0.0
     c_scale = 1.0
-    if reset_noise_sigma > 0:
-        cmin = float(min(c_on.min(), c_off.min()))
-        c_scale = max(0.25, 1.0 - 6.0 * reset_noise_sigma / cmin)
     if alive is None:
         alive = np.ones(npix, dtype=np.int8)
     bound = np.empty(npix, dtype=np.int64)
     for _attempt in range(6):
-        _bounds(rho, c_on, c_off, t1, t2, pieces, c_scale, bound)
+        _bounds(rho, c_on, c_off, t1, t2, pieces, c_scale, float(reset_noise_sigma), bound)
         offsets = np.zeros(npix + 1, dtype=np.int64)
         np.cumsum(bound, out=offsets[1:])
         total = int(offsets[-1])
