@@ -159,6 +159,30 @@ def _c(contrast_percent: float) -> float:
     return math.log1p(contrast_percent / 100.0)
 
 
+_NOISY = SensorParams(
+    name="noisy",
+    # v2e's 'noisy' model: sigma_thres 0.05, leak 0.1 Hz, shot noise 5 Hz.
+    threshold_sigma=0.05,
+    leak_rate_hz=0.1,
+    shot_noise_rate_hz=5.0,
+    # not from a datasheet (see docs/sensor.md): reset noise, jitter, defects.
+    reset_noise_sigma=0.01,
+    jitter_sigma_us=2.0,
+    hot_pixel_fraction=1e-4,
+    hot_pixel_rate_hz=10.0,
+    dead_pixel_fraction=1e-4,
+    cutoff_irradiance=1000.0,
+    dark_irradiance=0.1,
+    arbiter="delay",
+)
+"""What the realistic presets share: v2e's noise model and our defect choices."""
+
+
+def _tau_to_cutoff_hz(tau_us: float) -> float:
+    """3 dB cut-off of a first-order low-pass with time constant ``tau_us``."""
+    return 1e6 / (2 * math.pi * tau_us)
+
+
 PRESETS: dict[str, SensorParams] = {
     # Noise-free pixel, no mismatch: every pixel with the same radiance fires at the
     # same instants. Thresholds are v2e's nominal 0.2.
@@ -168,53 +192,27 @@ PRESETS: dict[str, SensorParams] = {
     # refractory_period_s = 0.
     "v2e": SensorParams(name="v2e", leak_rate_hz=0.1),
     # iniVation DAVIS346 (datasheet: contrast sensitivity 14.3 % ON / 22.5 % OFF,
-    # event bandwidth 12 Mev/s, minimum latency about 20 µs); noise, refractory and
-    # bandwidth as v2e's 'noisy' model (sigma_thres 0.05, cutoff 30 Hz at the dark end
-    # is v2e's; here 20 µs latency at 1000 lux sets the bright-end time constant),
-    # leak 0.1 Hz, shot noise 5 Hz, refractory 1 ms (v2e's --refractory_period default).
-    "davis346": SensorParams(
+    # event bandwidth 12 Mev/s, minimum latency about 20 µs, used as the time constant
+    # at 1000); refractory 1 ms (v2e's --refractory_period default).
+    "davis346": _NOISY.with_(
         name="davis346",
         threshold_on=_c(14.3),
         threshold_off=_c(22.5),
-        threshold_sigma=0.05,
-        reset_noise_sigma=0.01,
         refractory_us=1000.0,
-        cutoff_hz=1e6 / (2 * math.pi * 20.0),
-        cutoff_irradiance=1000.0,
-        dark_irradiance=0.1,
-        latency_us=0.0,
-        jitter_sigma_us=2.0,
-        leak_rate_hz=0.1,
-        shot_noise_rate_hz=5.0,
-        hot_pixel_fraction=1e-4,
-        hot_pixel_rate_hz=10.0,
-        dead_pixel_fraction=1e-4,
+        cutoff_hz=_tau_to_cutoff_hz(20.0),
         max_event_rate_hz=12e6,
-        arbiter="delay",
     ),
     # Sony IMX636 / Prophesee Gen4.1 (Finateu et al., ISSCC 2020: 1280x720, pixel latency
     # about 100 µs at 1 klux, readout up to 1.066 Gev/s). Thresholds at the default
-    # biases about 25 % (Prophesee's bias documentation); mismatch, leak and shot noise
-    # as v2e's 'noisy' model; refractory 100 µs (order of the bias_refr default).
-    "imx636": SensorParams(
+    # biases about 25 % (Prophesee's bias documentation); refractory 100 µs (order of
+    # the bias_refr default).
+    "imx636": _NOISY.with_(
         name="imx636",
         threshold_on=_c(25.0),
         threshold_off=_c(25.0),
-        threshold_sigma=0.05,
-        reset_noise_sigma=0.01,
         refractory_us=100.0,
-        cutoff_hz=1e6 / (2 * math.pi * 100.0),
-        cutoff_irradiance=1000.0,
-        dark_irradiance=0.1,
-        latency_us=0.0,
-        jitter_sigma_us=2.0,
-        leak_rate_hz=0.1,
-        shot_noise_rate_hz=5.0,
-        hot_pixel_fraction=1e-4,
-        hot_pixel_rate_hz=10.0,
-        dead_pixel_fraction=1e-4,
+        cutoff_hz=_tau_to_cutoff_hz(100.0),
         max_event_rate_hz=1.066e9,
-        arbiter="delay",
     ),
 }
 
