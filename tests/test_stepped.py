@@ -392,3 +392,20 @@ def test_bad_inputs_raise_clear_errors() -> None:
     closed = Rig(t2=Waveform.from_samples([1.0, 0.0]))
     with pytest.raises(ValueError, match="irradiance reaches zero"):
         simulate_stepped(np.zeros((2, 3)), c_on=c_on, c_off=c_off, **{**kw, "rig": closed})
+
+
+def test_simulate_moving_scene_through_the_top_level() -> None:
+    """``simulate`` passes frames to the stepped engine and refuses them on the exact one."""
+    from asynhdr.simulate import simulate as top
+
+    frames = np.full((3, 4, 6), 5.0)
+    frames[1, :, :3] = 500.0
+    frames[2, :, :] = 500.0
+    times = np.array([0.0, 20_000.0, 40_000.0])
+    rec = top(frames, rig=Rig(period_us=50_000), sensor="ideal", engine="stepped",
+              frame_times_us=times)
+    assert rec.events.size > 0 and rec.width == 6 and rec.height == 4
+    with pytest.raises(ValueError, match="stepped"):
+        top(frames, sensor="ideal", frame_times_us=times)
+    with pytest.raises(ValueError, match="frame_times_us"):
+        top(frames, sensor="ideal")

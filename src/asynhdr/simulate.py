@@ -49,16 +49,19 @@ def draw_thresholds(
     return c_on, c_off
 
 
-def _as_radiance(scene: Any) -> tuple[np.ndarray, dict[str, Any]]:
+def _as_radiance(scene: Any, *, frames: bool = False) -> tuple[np.ndarray, dict[str, Any]]:
     radiance = getattr(scene, "radiance", scene)
     radiance = np.asarray(radiance)
     info: dict[str, Any] = {}
     for attr in ("name", "unit"):
         if hasattr(scene, attr):
             info[attr] = getattr(scene, attr)
-    if radiance.ndim != 2:
+    if frames and radiance.ndim != 3:
+        raise ValueError(f"a moving scene must be a 3-D (n_frames, height, width) array, got "
+                         f"shape {radiance.shape}")
+    if not frames and radiance.ndim != 2:
         raise ValueError(f"scene radiance must be a 2-D (height, width) array, got shape "
-                         f"{radiance.shape}")
+                         f"{radiance.shape}; a moving scene needs frame_times_us")
     if not np.issubdtype(radiance.dtype, np.floating) and \
             not np.issubdtype(radiance.dtype, np.integer):
         raise ValueError(f"scene radiance must be numeric, got dtype {radiance.dtype}")
@@ -105,6 +108,7 @@ def simulate(
     sensor_seed: int | None = None,
     engine: str = "exact",
     dt_us: float = 5.0,
+    frame_times_us: np.ndarray | None = None,
     progress: Progress | None = None,
 ) -> Recording:
     """Simulate ``n_cycles`` modulation cycles of a static scene.
@@ -127,6 +131,9 @@ def simulate(
     engine : ``"exact"`` (crossing times computed; the photoreceptor low-pass as the lag
         of a slowly varying input) or ``"stepped"`` (time-stepped integration of the
         pixel state with step ``dt_us``: exact low-pass, any waveform).
+    frame_times_us : for a moving scene, ``scene`` is ``(n_frames, height, width)`` and
+        these are the frames' times (µs from ``t0_us``; radiance is interpolated linearly
+        between them and held outside). Needs ``engine="stepped"``.
     progress : called as ``progress(done_cycles, n_cycles)``.
 
     Returns
@@ -144,8 +151,11 @@ def simulate(
     if sensor.refractory_us >= rig.period_us:
         raise ValueError(f"refractory_us ({sensor.refractory_us}) must be shorter than the "
                          f"cycle (period_us={rig.period_us})")
-    radiance, info = _as_radiance(scene)
-    height, width = radiance.shape
+    moving = frame_times_us is not None
+    radiance, info = _as_radiance(scene, frames=moving)
+    if moving and engine != "stepped":
+        raise ValueError("a moving scene (frame_times_us) needs engine='stepped'")
+    height, width = radiance.shape[-2:]
     if width > 65535 or height > 65535:
         raise ValueError(f"sensor too large for uint16 coordinates: {width}x{height}")
     gen = np.random.default_rng(rng)
@@ -155,9 +165,9 @@ def simulate(
         c_on, c_off = draw_thresholds(sensor, width=width, height=height, rng=sensor_gen)
     else:
         c_on, c_off = (np.asarray(a, dtype=np.float64) for a in thresholds)
-        if c_on.shape != radiance.shape or c_off.shape != radiance.shape:
+        if c_on.shape != (height, width) or c_off.shape != (height, width):
             raise ValueError(
-                f"thresholds must have the scene's shape {radiance.shape}, got {c_on.shape} "
+                f"thresholds must have the sensor's shape {(height, width)}, got {c_on.shape} "
                 f"and {c_off.shape}"
             )
         if (c_on <= 0).any() or (c_off <= 0).any():
@@ -171,8 +181,9 @@ def simulate(
         t1v, t2v = w1(knots), w2(knots)
     else:
         knots, t1v, t2v = w1.phase, w1.values, w2.values
-    rho = (radiance.astype(np.float64) / rig.l_const).ravel()
-    e_min = float(np.min(rho.min() * t1v + t2v))
+    still = radiance.mean(axis=0) if moving else radiance
+    rho = (still.astype(np.float64) / rig.l_const).ravel()
+    e_min = float(np.min(float(radiance.min()) / rig.l_const * t1v + t2v))
     if not e_min > 0:
         raise ValueError(
             "the sensor irradiance reaches zero during the cycle (T2 closes fully while some "
@@ -182,7 +193,7 @@ def simulate(
     c_off_f = np.ascontiguousarray(c_off.ravel())
     starts = rig.cycle_starts_us(n_cycles, t0_us=t0_us)
     scale = rig.k_lens * rig.l_const
-    rad_f = radiance.astype(np.float64).ravel()
+    rad_f = still.astype(np.float64).ravel()  # a moving scene's mean, for noise rates
 
     def irradiance_at(pix: np.ndarray, t_off_us: np.ndarray) -> np.ndarray:
         u = np.asarray(t_off_us) / rig.period_us
@@ -212,7 +223,7 @@ def simulate(
         stepped = simulate_stepped(
             radiance.astype(np.float64), rig=rig, sensor=sensor, n_cycles=n_cycles,
             c_on=c_on, c_off=c_off, seed=hash_seed, dt_us=dt_us, t0_us=t0_us,
-            progress=progress)
+            frame_times_us=frame_times_us, progress=progress)
         stepped = _shift_times(stepped, sensor, hash_seed)
         signal.append(stepped)
 
