@@ -91,6 +91,15 @@ def test_ttfe_inverts_the_waveform_linearly_in_radiance() -> None:
     assert img[0, 3] == pytest.approx(radiance[0, 3], rel=0.03)
 
 
+def test_invert_is_linear_in_radiance_on_the_ideal_pixel() -> None:
+    """Every event inverts to the pixel's radiance; their geometric mean is it."""
+    rig = Rig(period_us=50_000)
+    radiance = np.array([[3.0, 12.0, 40.0, 500.0, 5000.0]])
+    rec = simulate(radiance, rig=rig, sensor="ideal", n_cycles=2)
+    img = reconstruct(rec, method="invert")
+    np.testing.assert_allclose(img[1, 0], radiance[0], rtol=5e-3)
+
+
 def test_every_method_runs_and_is_monotone_on_a_ramp_of_radiances() -> None:
     radiance = np.geomspace(15.0, 5000.0, 12).reshape(1, 12)
     rec = simulate(radiance, sensor="ideal", n_cycles=2)

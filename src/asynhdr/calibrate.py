@@ -54,7 +54,8 @@ class CMap:
         key = cmap_key(method, k=k)
         if key in self.maps:
             return self.maps[key]
-        if method in ("ttfe", "count") and "raw" in self.maps:
+        if method in ("ttfe", "count", "invert") and "raw" in self.maps:
+            # the raw map is the per-pixel threshold ratio itself (event counts)
             return self.maps["raw"]
         raise ValueError(
             f"the c-map has no map for {key!r}; it has {sorted(self.maps)}. "

@@ -124,7 +124,7 @@ def run_chart_experiment(
     n_cycles: int = 3,
     n_flat: int = 4,
     flat_cycles: int = 2,
-    methods: Sequence[str] = (*WEIGHTINGS, "ttfe", "count"),
+    methods: Sequence[str] = (*WEIGHTINGS, "ttfe", "count", "invert"),
     k: float = DEFAULT_K,
     illuminance_lux: float = PAPER_ILLUMINANCE_LUX,
     flat_density: float = DEFAULT_FLAT_DENSITY,

@@ -33,6 +33,16 @@ Baselines:
   Pixels with no ON event in the window are 0.
 - ``count``: ``L_const * exp(c * n_on)`` from the number of ON events alone.
 
+Radiometric inversion (``invert``): every event is an equation for ``L``. After
+``n_on`` ON and ``n_off`` OFF events since the cycle start, the pixel's irradiance has
+moved by ``c_on n_on - c_off n_off`` in log, so with the rig's known waveforms::
+
+    L = L_const * (e^level T2(0) - T2(u)) / (T1(u) - e^level T1(0))
+
+per event; the image is the geometric mean of these estimates over the cycle's
+events. It is linear in radiance (up to noise) and uses the c-map's per-pixel
+thresholds when given. Pixels with no usable event are 0.
+
 Per-pixel sums are one pass over the time-sorted events (numba), scatter-adding into
 ``(n_cycles, height * width)``.
 """
@@ -70,7 +80,7 @@ logger = logging.getLogger(__name__)
 WEIGHTINGS: dict[str, int] = {"raw": 0, "linear": 1, "quadratic": 2, "poly5": 3, "exp": 4}
 """The paper's temporal weightings, name -> kernel code."""
 
-METHODS: tuple[str, ...] = (*WEIGHTINGS, "ttfe", "count")
+METHODS: tuple[str, ...] = (*WEIGHTINGS, "ttfe", "count", "invert")
 """Every reconstruction method, selected by name."""
 
 DEFAULT_K = 10.0
@@ -341,10 +351,89 @@ def _ttfe(rec: Recording, windows: CycleWindows, *, k: float, threshold: float,
     return (l_const * np.maximum(rho, 0.0)).astype(np.float32)
 
 
+@nb.njit(cache=True, inline="always")
+def _interp(knots, values, x):
+    """Piecewise-linear interpolation at ``x`` (knots increasing, x clamped)."""
+    n = knots.shape[0]
+    if x <= knots[0]:
+        return values[0]
+    if x >= knots[n - 1]:
+        return values[n - 1]
+    lo = 0
+    hi = n - 1
+    while hi - lo > 1:
+        mid = (lo + hi) >> 1
+        if knots[mid] <= x:
+            lo = mid
+        else:
+            hi = mid
+    w = (x - knots[lo]) / (knots[hi] - knots[lo])
+    return values[lo] + (values[hi] - values[lo]) * w
+
+
+@nb.njit(cache=True)
+def _invert_kernel(x, y, p, t, starts, window_us, period_us, width, c_on, c_off, knots,
+                   t1, t2, n_on, n_off, last_cycle, acc, cnt):
+    """Per event: the level reached since the cycle start is ``c_on n_on - c_off n_off``;
+    ``rho T1(u) + T2(u) = e^level (rho T1(0) + T2(0))`` gives one estimate of ``rho``.
+    Accumulates ``log rho`` per cycle and pixel."""
+    ncyc = starts.shape[0]
+    c = 0
+    t10 = t1[0]
+    t20 = t2[0]
+    for i in range(t.shape[0]):
+        ti = t[i]
+        while c + 1 < ncyc and ti >= starts[c + 1]:
+            c += 1
+        dt = ti - starts[c]
+        if dt < 0 or dt >= window_us:
+            continue
+        j = np.int64(y[i]) * width + x[i]
+        if last_cycle[j] != c:
+            last_cycle[j] = c
+            n_on[j] = 0
+            n_off[j] = 0
+        if p[i] > 0:
+            n_on[j] += 1
+        else:
+            n_off[j] += 1
+        level = c_on[j] * n_on[j] - c_off[j] * n_off[j]
+        u = (dt + 0.5) / period_us
+        e = np.exp(level)
+        den = _interp(knots, t1, u) - e * t10
+        num = e * t20 - _interp(knots, t2, u)
+        if den > 0.0 and num > 0.0:
+            acc[c, j] += np.log(num / den)
+            cnt[c, j] += 1.0
+
+
+def _invert(rec: Recording, windows: CycleWindows, *, k: float, threshold: float,
+            l_const: float, cmap: np.ndarray | None, rig: Rig | None) -> np.ndarray:
+    if rig is None:
+        raise ValueError("method 'invert' needs the rig's waveforms (a simulated recording, "
+                         "or a rig given in the recording's metadata)")
+    w1, w2 = rig.waveforms()
+    knots = np.union1d(w1.phase, w2.phase)
+    c = np.full(rec.height * rec.width, threshold) if cmap is None else \
+        (threshold * np.asarray(cmap, dtype=np.float64)).ravel()
+    npx = rec.height * rec.width
+    acc = np.zeros((windows.n_cycles, npx))
+    cnt = np.zeros((windows.n_cycles, npx))
+    ev = _sorted_events(rec)
+    _invert_kernel(ev["x"], ev["y"], ev["p"], ev["t"], windows.start_us,
+                   float(windows.window_us), float(rig.period_us), rec.width, c, c, knots,
+                   w1(knots), w2(knots), np.zeros(npx, np.int64), np.zeros(npx, np.int64),
+                   np.full(npx, -1, np.int64), acc, cnt)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rho = np.where(cnt > 0, np.exp(acc / np.maximum(cnt, 1.0)), 0.0)
+    return (l_const * rho).reshape(windows.n_cycles, rec.height, rec.width).astype(np.float32)
+
+
 _TABLE: dict[str, Callable[..., np.ndarray]] = {
     **{m: _paper(m) for m in WEIGHTINGS},
     "count": _count,
     "ttfe": _ttfe,
+    "invert": _invert,
 }
 
 

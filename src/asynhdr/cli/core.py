@@ -118,7 +118,7 @@ def demo(
     for r in res.results:
         name = r.method + ("_cmap" if r.with_cmap else "")
         info = dict(meta, method=r.method, k=k, with_cmap=r.with_cmap,
-                    radiometric=r.method == "ttfe")
+                    radiometric=r.method in ("ttfe", "invert"))
         _write_images(r.image, images_dir / name, ["exr", "png"], info)
     write_image(out / "truth.exr", res.scene.radiance, metadata={"unit": "lux"})
     write_image(out / "truth.png", res.scene.radiance)
@@ -147,24 +147,30 @@ def demo(
     table.add_column("paper", justify="right")
     table.add_column(f"DR {preset} (dB)", justify="right")
     table.add_column("resolved D", justify="right")
+    table.add_column("rel. RMSE", justify="right")
 
     def pair(r: Any, m: str) -> str:
         a, b = r.get(m, False), r.get(m, True)
         return f"{a.mean_snr_db:6.2f} / {b.mean_snr_db:6.2f}".replace("inf", "  inf")
 
-    for m in (*WEIGHTINGS, "ttfe", "count"):
+    for m in (*WEIGHTINGS, "ttfe", "count", "invert"):
         try:
             b = res.get(m, True)
         except KeyError:
             continue
-        row = [m if m in WEIGHTINGS else f"{m} (baseline)", pair(res, m)]
+        label = {"ttfe": "ttfe (baseline)", "count": "count (baseline)",
+                 "invert": "invert (radiometric)"}.get(m, m)
+        row = [label, pair(res, m)]
         if ref is not None:
             row.append(pair(ref, m))
         pa = PAPER_SNR_DB.get(m)
         row.append(f"{pa[0]:6.2f} / {pa[1]:6.2f}" if pa else "-")
-        row += [f"{b.dr.dr_db:.1f}", f"{b.dr.d_brightest:.2f}-{b.dr.d_darkest:.2f}"]
+        row += [f"{b.dr.dr_db:.1f}", f"{b.dr.d_brightest:.2f}-{b.dr.d_darkest:.2f}",
+                f"{float(np.median(b.rel_rmse)):.3f}"]
         table.add_row(*row)
     console.print(table)
+    console.print("DR, resolved densities and rel. RMSE (median over patches of the relative "
+                  "RMS error against the true radiance, one scale fitted) are with the c-map.")
     ro = res.metadata.get("readout") or {}
     if ro.get("emitted"):
         console.print(f"readout ({preset}): {ro['emitted']:,} emitted, {ro['delivered']:,} "
@@ -292,7 +298,7 @@ def reconstruct(
     recording: Path = typer.Argument(..., help="Event recording (any supported format)."),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder."),
     method: str = typer.Option("exp", help="raw | linear | quadratic | poly5 | exp | ttfe | "
-                               "count."),
+                               "count | invert."),
     k: float = typer.Option(10.0, help="k of the exponential weighting."),
     cmap: Path | None = typer.Option(None, help="c-map from 'asynhdr calibrate'."),
     threshold: float | None = typer.Option(None, help="Contrast threshold c (default: the "
@@ -322,7 +328,8 @@ def reconstruct(
     except (ValueError, FileNotFoundError) as exc:
         fail(str(exc))
     meta = {"source": str(recording), "method": method, "k": k,
-            "cmap": str(cmap) if cmap else None, "radiometric": method == "ttfe",
+            "cmap": str(cmap) if cmap else None,
+            "radiometric": method in ("ttfe", "invert"),
             "unit": rec.metadata.get("radiance_unit", "relative")}
     with progress_bar() as update:
         for i, img in enumerate(imgs):
