@@ -19,7 +19,7 @@ from rich.table import Table
 
 from asynhdr.cli import app
 
-console = Console(width=None if sys.stdout.isatty() else 110)
+console = Console(width=None if sys.stdout.isatty() else 150)
 err_console = Console(stderr=True, width=None if sys.stderr.isatty() else 110)
 
 IMAGE_FORMATS = ("exr", "hdr", "npy", "png", "tif")
@@ -148,6 +148,8 @@ def demo(
     table.add_column(f"DR {preset} (dB)", justify="right")
     table.add_column("resolved D", justify="right")
     table.add_column("rel. RMSE", justify="right")
+    if ref is not None:
+        table.add_column(f"DR {ref.metadata['sensor']['name']} (dB)", justify="right")
 
     def pair(r: Any, m: str) -> str:
         a, b = r.get(m, False), r.get(m, True)
@@ -167,6 +169,8 @@ def demo(
         row.append(f"{pa[0]:6.2f} / {pa[1]:6.2f}" if pa else "-")
         row += [f"{b.dr.dr_db:.1f}", f"{b.dr.d_brightest:.2f}-{b.dr.d_darkest:.2f}",
                 f"{float(np.median(b.rel_rmse)):.3f}"]
+        if ref is not None:
+            row.append(f"{ref.get(m, True).dr.dr_db:.1f}")
         table.add_row(*row)
     console.print(table)
     console.print("DR, resolved densities and rel. RMSE (median over patches of the relative "
