@@ -428,20 +428,37 @@ def _crossing(prof: np.ndarray, level: float, i_hi: int) -> float:
 
 
 def _template_onset(template: np.ndarray) -> float:
-    """Burst onset in a one-period profile, in bin units (may be negative: circular).
+    """Cycle onset in a one-period profile, in bin units (may be negative: circular).
 
     The profile is smoothed over 3 bins (circularly). Baseline ``b`` = its 10th
-    percentile; plateau ``h`` = the median of the values above ``b + (max - b) / 2``.
-    Walking back from the maximum, the onset is where the profile crosses
-    ``b + 0.1 (h - b)`` (linear interpolation), measured at the bins' centres.
+    percentile; plateau ``h`` = the median of the values above ``b + (max - b) / 2``;
+    level ``b + 0.1 (h - b)``. From the profile's maximum, walk forward (circularly)
+    until the profile falls below the level, then on to where it first rises through
+    it again (linear interpolation, at the bins' centres): the cycle starts when
+    activity resumes after the biggest burst has died down. For a burst that opens
+    each cycle this is that burst's own onset; for a rig whose panels reset fast at the
+    end of the ramp (a bigger burst than the ramp's), it is the rise after the reset.
     """
     prof = (np.roll(template, 1) + template + np.roll(template, -1)) / 3.0
+    n = prof.size
     base = float(np.percentile(prof, 10))
-    peak_i = int(np.argmax(prof))
-    top = float(prof[peak_i])
+    peak = int(np.argmax(prof))
+    top = float(prof[peak])
     plateau = float(np.median(prof[prof > base + 0.5 * (top - base)]))
     level = base + ONSET_FRACTION * (plateau - base)
-    return _crossing(prof, level, peak_i) + 0.5
+    i = peak
+    fell = False
+    for _ in range(2 * n):
+        j = i + 1
+        if not fell:
+            fell = prof[j % n] < level
+        elif prof[j % n] >= level:
+            lo, hi = prof[i % n], prof[j % n]
+            frac = (level - lo) / (hi - lo) if hi > lo else 0.0
+            onset = i + frac + 0.5
+            return onset - n if onset >= n else onset
+        i = j
+    return _crossing(prof, level, peak) + 0.5
 
 
 def _fold(counts: np.ndarray, bin_us: float, period_us: float, offset_us: float) -> np.ndarray:
@@ -586,8 +603,10 @@ def cycles_from_rate(
     tmpl = res["tmpl"]
     ka, la, strong, inl = res["ka"], res["la"], res["strong"], res["inl"]
     onset0 = a_us + phi_us  # µs from t0: start of cycle k = onset0 + k p
-    # Starts within the histogram's span (a start may precede the first bin by < 1 bin).
-    k_first = int(np.ceil((-bin_us - onset0) / p))
+    # Starts within the histogram's span. A cycle whose first events open the recording
+    # starts a little before the first event (the sensor needs time to reach its first
+    # threshold): a start up to a tenth of the period before the first bin is kept.
+    k_first = int(np.ceil((-max(bin_us, 0.1 * p) - onset0) / p))
     k_last = int(np.floor((span_us - onset0) / p))
     kk = np.arange(k_first, k_last + 1)
     starts = int(t0_us) + np.rint(onset0 + kk * p).astype(np.int64)
