@@ -149,12 +149,22 @@ def test_snr_and_dynamic_range_by_hand() -> None:
     assert math.isinf(st.snr_db[1])
     assert mean_snr_db(st) == pytest.approx(20 * math.log10(11))
     assert math.isinf(mean_snr_db(PatchStats(mean=np.array([3.0]), std=np.array([0.0]))))
-    # densities 0, 1, 2, 3; means distinguished except the last pair -> run 0..2
-    st = PatchStats(mean=np.array([100.0, 10.0, 1.0, 0.9]), std=np.array([1, 1, 0.1, 0.5]))
-    dr = dynamic_range(st, np.array([0.0, 1.0, 2.0, 3.0]))
-    assert dr.dr_db == pytest.approx(40.0)
-    assert (dr.d_brightest, dr.d_darkest) == (0.0, 2.0)
-    assert dr.resolved.tolist() == [True, True, True, False]
+    # densities 0..4, 100 pixels each: standard error of a difference sqrt(2) sd / 10
+    st = PatchStats(mean=np.array([100.0, 10.0, 9.5, 1.0, 0.9]),
+                    std=np.array([1.0, 1.0, 1.0, 0.1, 1.5]),
+                    count=np.full(5, 100.0))
+    dr = dynamic_range(st, np.array([0.0, 1.0, 2.0, 3.0, 4.0]))
+    # 10 -> 9.5 is 0.5 > 3 * 0.141: resolved; the last patch has mu < sigma: not
+    assert dr.dr_db == pytest.approx(60.0)
+    assert (dr.d_brightest, dr.d_darkest) == (0.0, 3.0)
+    assert dr.resolved.tolist() == [True, True, True, True, False]
+    # one pixel per patch: the same step of 0.5 is now within noise and cuts the run
+    dr1 = dynamic_range(PatchStats(mean=st.mean, std=st.std), np.arange(5.0))
+    assert dr1.dr_db == pytest.approx(20.0)
+    # a response that turns back ends the run
+    back = PatchStats(mean=np.array([5.0, 4.0, 4.5, 1.0]), std=np.full(4, 0.01),
+                      count=np.full(4, 100.0))
+    assert dynamic_range(back, np.arange(4.0)).dr_db == pytest.approx(20.0)
 
 
 @pytest.mark.parametrize(

@@ -4,11 +4,16 @@ SNR of a patch (Wu et al. 2024, section 3.2): ``10 log10(mu^2 / sigma^2)`` over 
 pixels of its region of interest, on the reconstructed image.
 
 Dynamic range by the paper's criterion: ``DR = 20 (D_darkest - D_brightest)`` dB over
-the resolved patches. Here a patch pair is *distinguished* when, taking the patches in
-order of density, the brighter one reconstructs brighter by more than the pair's
-combined noise: ``mu_i - mu_j > sqrt(sigma_i^2 + sigma_j^2)``. The resolved levels are
-the longest run of consecutive densities whose every adjacent pair is distinguished;
-``D_brightest`` and ``D_darkest`` are its ends.
+the resolved patches ("sensitivity to brightness variations across filter levels").
+Here, taking the patches in order of density, a step between neighbours is *resolved*
+when the brighter patch reconstructs brighter by more than three standard errors of
+the difference of the two patch means, ``mu_i - mu_j > 3 sqrt(sigma_i^2/n_i +
+sigma_j^2/n_j)`` (``n``: pixels in each region), and a patch counts only while its
+signal is at least its noise, ``mu >= sigma`` (SNR >= 0 dB, the lower limit of the
+dynamic range in EMVA 1288). The resolved levels are the longest run of consecutive
+densities whose every patch and every adjacent step pass; ``D_brightest`` and
+``D_darkest`` are its ends. A saturated end (neighbours reading the same) or a
+response that turns back ends the run.
 """
 
 from __future__ import annotations
@@ -32,10 +37,20 @@ Roi = tuple[int, int, int, int]
 
 @dataclass(frozen=True)
 class PatchStats:
-    """Per-patch mean and standard deviation of an image, and the SNR in dB."""
+    """Per-patch mean, standard deviation and pixel count of an image; SNR in dB.
+
+    ``count`` is the number of pixels of each region (1 when not given).
+    """
 
     mean: np.ndarray
     std: np.ndarray
+    count: np.ndarray | None = None
+
+    @property
+    def n(self) -> np.ndarray:
+        """Pixels per patch (ones when ``count`` is not given)."""
+        return np.ones_like(self.mean) if self.count is None else \
+            np.asarray(self.count, dtype=np.float64)
 
     @property
     def snr_db(self) -> np.ndarray:
@@ -53,12 +68,14 @@ def patch_stats(image: np.ndarray, rois: Mapping[int, Roi]) -> PatchStats:
     n = len(rois)
     mean = np.empty(n)
     std = np.empty(n)
+    count = np.empty(n)
     for i in range(n):
         y0, y1, x0, x1 = rois[i]
         region = img[y0:y1, x0:x1]
         mean[i] = region.mean()
         std[i] = region.std()
-    return PatchStats(mean, std)
+        count[i] = region.size
+    return PatchStats(mean, std, count)
 
 
 def mean_snr_db(stats: PatchStats) -> float:
@@ -87,15 +104,20 @@ class DynamicRange:
     resolved: np.ndarray  # bool per patch
 
 
-def dynamic_range(stats: PatchStats, densities: np.ndarray) -> DynamicRange:
-    """``20 (D_darkest - D_brightest)`` dB over the longest run of distinguished patches."""
+def dynamic_range(stats: PatchStats, densities: np.ndarray, *,
+                  z: float = 3.0) -> DynamicRange:
+    """``20 (D_darkest - D_brightest)`` dB over the longest run of resolved patches
+    (see the module's text; ``z`` standard errors make a step)."""
     d = np.asarray(densities, dtype=np.float64)
     if d.size != stats.mean.size:
         raise ValueError(f"dynamic_range: {d.size} densities for {stats.mean.size} patches")
     order = np.argsort(d, kind="stable")
     mu = stats.mean[order]
     sd = stats.std[order]
-    ok = (mu[:-1] - mu[1:]) > np.sqrt(sd[:-1] ** 2 + sd[1:] ** 2)
+    n = stats.n[order]
+    se = np.sqrt(sd[:-1] ** 2 / n[:-1] + sd[1:] ** 2 / n[1:])
+    signal = mu >= sd
+    ok = ((mu[:-1] - mu[1:]) > z * se) & signal[:-1] & signal[1:]
     best = (0, 0)  # [start, end] in sorted positions
     i = 0
     while i < ok.size:
