@@ -98,9 +98,12 @@ def validate_events(
         raise ValueError(f"{name}: expected a 1-D array, got shape {events.shape}")
     if events.size == 0:
         return events
-    code, i, back = _scan_events(events["x"], events["y"], events["p"], events["t"],
-                                 -1 if width is None else int(width),
-                                 -1 if height is None else int(height), require_sorted)
+    w = -1 if width is None else int(width)
+    h = -1 if height is None else int(height)
+    if _all_fine(events["x"], events["y"], events["p"], events["t"], w, h, require_sorted):
+        return events
+    code, i, back = _scan_events(events["x"], events["y"], events["p"], events["t"], w, h,
+                                 require_sorted)
     if code == 1:
         raise ValueError(f"{name}: polarity must be +1 or -1; event {i} has "
                          f"p={int(events['p'][i])}")
@@ -122,6 +125,37 @@ def validate_events(
             "use asynhdr.events.sort_events to sort stably"
         )
     return events
+
+
+@nb.njit(cache=True)
+def _all_fine(x, y, p, t, width, height, require_sorted):
+    """Branch-free first pass: True when no event has a bad polarity, a pixel outside
+    the sensor or (when asked) a time that steps back. Only when it says False does
+    ``_scan_events`` look for the first problem."""
+    bad = 0
+    xmax = np.int64(0)
+    ymax = np.int64(0)
+    n = x.shape[0]
+    for i in range(n):
+        pi = p[i]
+        bad |= (pi != 1) & (pi != -1)
+        xi = np.int64(x[i])
+        yi = np.int64(y[i])
+        xmax = xi if xi > xmax else xmax
+        ymax = yi if yi > ymax else ymax
+    if bad:
+        return False
+    if width >= 0 and xmax >= width:
+        return False
+    if height >= 0 and ymax >= height:
+        return False
+    if require_sorted:
+        back = 0
+        for i in range(1, n):
+            back |= t[i] < t[i - 1]
+        if back:
+            return False
+    return True
 
 
 @nb.njit(cache=True)
