@@ -12,6 +12,10 @@ its operation until it has run for at least 0.2 s (small files decode in ms).
   file with ``MonoCameraRecording.getNextEventBatch`` + ``.numpy()`` ("dv bare":
   packets dropped as read; "dv 1 arr": packets kept and concatenated into one
   array, which is what a caller needs); ratio = time ours / time dv (target 1.2).
+  Also timed, in the same rounds: ``validate_events`` over the decoded events (what
+  ``Recording`` re-checks on construction), shown as a share of dv's bare read and as
+  the ratio ours would have without it ("w/o valid."). Compiled kernels are warmed up
+  (and cached) before any sample.
 - hdf5 / npz / text: a synthetic recording of ``--events`` events written and read
   back; reference: ``numpy.save`` / ``numpy.load`` of the same four arrays,
   uncompressed (the memory and disk speed floor of this machine).
@@ -73,11 +77,17 @@ def timed_together(fns: dict[str, Callable[[], Any]], repeat: int) -> dict[str, 
 def bench_aedat(data: Path, repeat: int) -> list[dict[str, Any]]:
     import dv_processing as dv
 
+    from asynhdr.events import validate_events
     from asynhdr.io.aedat import read_aedat
 
     rows = []
     for path in sorted((data / "events").glob("*.aedat4")):
-        n = read_aedat(path).events.size
+        rec = read_aedat(path)
+        n = rec.events.size
+
+        def check(rec: Recording = rec) -> None:
+            validate_events(rec.events, width=rec.width, height=rec.height,
+                            require_sorted=False)
 
         def ours(path: Path = path) -> None:
             read_aedat(path)
@@ -100,13 +110,16 @@ def bench_aedat(data: Path, repeat: int) -> list[dict[str, Any]]:
                 parts.append(b.numpy())
             np.concatenate(parts)
 
-        t = timed_together({"ours": ours, "bare": bare, "one": bare_one_array}, repeat)
+        t = timed_together({"ours": ours, "bare": bare, "one": bare_one_array,
+                            "check": check}, repeat)
         rows.append({
             "file": path.name, "events": n,
             "asynhdr_events_per_s": n / t["ours"], "dv_bare_events_per_s": n / t["bare"],
             "dv_one_array_events_per_s": n / t["one"],
             "ratio_time_asynhdr_over_dv": t["ours"] / t["bare"],
             "ratio_time_asynhdr_over_dv_one_array": t["ours"] / t["one"],
+            "validate_s": t["check"], "validate_share_of_dv": t["check"] / t["bare"],
+            "ratio_time_asynhdr_without_validate_over_dv": (t["ours"] - t["check"]) / t["bare"],
         })
     return rows
 
@@ -183,13 +196,15 @@ def main(argv: list[str] | None = None) -> int:
         results["aedat4"] = bench_aedat(args.data, args.repeat)
         print(f"AEDAT 4.0 decode (events/s, median of {args.repeat})")
         print(f"{'file':28s} {'events':>8s} {'asynhdr':>9s} {'dv bare':>9s} {'dv 1 arr':>9s} "
-              f"{'ratio':>6s} {'ratio 1 arr':>11s}")
+              f"{'ratio':>6s} {'ratio 1 arr':>11s} {'valid.':>6s} {'w/o valid.':>10s}")
         for r in results["aedat4"]:
             print(f"{r['file']:28s} {r['events']:8d} {r['asynhdr_events_per_s'] / 1e6:7.1f} M "
                   f"{r['dv_bare_events_per_s'] / 1e6:7.1f} M "
                   f"{r['dv_one_array_events_per_s'] / 1e6:7.1f} M "
                   f"{r['ratio_time_asynhdr_over_dv']:6.2f} "
-                  f"{r['ratio_time_asynhdr_over_dv_one_array']:11.2f}")
+                  f"{r['ratio_time_asynhdr_over_dv_one_array']:11.2f} "
+                  f"{r['validate_share_of_dv']:6.2f} "
+                  f"{r['ratio_time_asynhdr_without_validate_over_dv']:10.2f}")
     else:
         print(f"no real data at {args.data}; skipping AEDAT 4.0", file=sys.stderr)
     with tempfile.TemporaryDirectory(prefix="asynhdr-bench-io-") as d:

@@ -150,6 +150,78 @@ def test_aedat4_external_triggers_and_compression(tmp_path: Path, compression: s
     np.testing.assert_array_equal(tr, rec.triggers)
 
 
+def write_aedat4_packets(path: Path, packets: list[list[tuple[int, int, int, bool]]], *,
+                        size: tuple[int, int] = (32, 24)) -> None:
+    """An AEDAT 4.0 file (Zstd) with one event packet per list of (t, x, y, on)."""
+    import dv_processing as dv
+
+    cfg = dv.io.MonoCameraWriter.Config("TESTCAM")
+    cfg.compression = dv.CompressionType.ZSTD
+    cfg.addEventStream(size)
+    writer = dv.io.MonoCameraWriter(str(path), cfg)
+    for packet in packets:
+        store = dv.EventStore()
+        for t, x, y, on in packet:
+            store.push_back(t, x, y, on)
+        writer.writeEvents(store)
+    del writer  # closes the file
+
+
+@pytest.mark.parametrize("initial_events, copy_trim_bytes", [
+    (None, None),  # the reader's own sizes: no growth, trimmed by a copy
+    (1_000, None),  # the buffer doubles several times
+    (1_000, 0),  # ... and is trimmed in place
+])
+def test_aedat4_many_packets_any_buffer_size(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, initial_events: int | None,
+    copy_trim_bytes: int | None,
+) -> None:
+    pytest.importorskip("dv_processing")
+    from asynhdr.io import aedat
+
+    n, per_packet = 24_000, 2_000
+    i = np.arange(n)
+    x, y, on = i % 32, (i // 32) % 24, (i % 3) == 0
+    t = 5_000 + i // 2
+    path = tmp_path / "many.aedat4"
+    write_aedat4_packets(path, [
+        [(int(t[k]), int(x[k]), int(y[k]), bool(on[k])) for k in range(s, s + per_packet)]
+        for s in range(0, n, per_packet)])
+    if initial_events is not None:
+        monkeypatch.setattr(aedat, "_MAX_INITIAL_EVENTS", initial_events)
+    if copy_trim_bytes is not None:
+        monkeypatch.setattr(aedat, "_COPY_TRIM_BYTES", copy_trim_bytes)
+    rec = open_recording(path)
+    assert rec.events.dtype == EVENT_DTYPE and rec.events.shape == (n,)
+    assert rec.events.flags.owndata and rec.events.flags.c_contiguous
+    np.testing.assert_array_equal(rec.events["t"], t)
+    np.testing.assert_array_equal(rec.events["x"], x)
+    np.testing.assert_array_equal(rec.events["y"], y)
+    np.testing.assert_array_equal(rec.events["p"], np.where(on, 1, -1))
+    ev, _ = concat(list(iter_chunks(path, chunk_events=5_000)))
+    np.testing.assert_array_equal(ev, rec.events)
+
+
+@pytest.mark.parametrize("bad, message", [
+    ((2_002, 40, 3), r"event 1002 at x=40 is outside the sensor \(width=32\)"),
+    ((2_002, 5, 24), r"event 1002 at y=24 is outside the sensor \(height=24\)"),
+    ((2_002, -1, 3), r"event 1002 at x=-1 is outside the sensor \(width=32\)"),
+])
+def test_aedat4_event_outside_the_resolution_is_named(
+    tmp_path: Path, bad: tuple[int, int, int], message: str
+) -> None:
+    pytest.importorskip("dv_processing")
+    first = [(1_000 + k, k % 32, k % 24, True) for k in range(1_000)]
+    second = [(2_000 + k, 1, 1, False) for k in range(2)] + [(*bad, True)]
+    second += [(2_003 + k, 2, 2, True) for k in range(10)]
+    path = tmp_path / "outside.aedat4"
+    write_aedat4_packets(path, [first, second])
+    with pytest.raises(ValueError, match=r"outside\.aedat4: events: " + message):
+        open_recording(path)
+    with pytest.raises(ValueError, match=r"outside\.aedat4: events: " + message):
+        list(iter_chunks(path, chunk_events=100))
+
+
 # ----------------------------------------------------------------------------- .raw dispatch
 
 

@@ -19,13 +19,16 @@ EXTERNAL_GENERATOR_FALLING_EDGE     False        1
 
 Every record, external or not (APS frame and exposure markers, timestamp resets),
 is counted by type in ``metadata["trigger_records"]``.
+
+Each event packet is converted as it is read, in one compiled pass that also checks
+every pixel against the event stream's resolution: an event outside it raises a
+``ValueError`` naming the file, the event's index and the bound.
 """
 
 from __future__ import annotations
 
 import logging
 import os
-import sys
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -82,80 +85,78 @@ def _open(p: Path) -> Any:
     return reader
 
 
-_POLARITY = np.array([-1, 1], dtype=np.int8)  # AEDAT polarity 0 (OFF), 1 (ON) -> -1, +1
-_DV_LAYOUT = (0, 8, 10, 12, 16)  # byte offsets of timestamp, x, y, polarity; itemsize
-_OUT_LAYOUT = (0, 2, 4, 5, 13)  # byte offsets of x, y, p, t in EVENT_DTYPE; itemsize
+_DV_FIELDS = ("timestamp", "x", "y", "polarity")
+_MAX_INITIAL_EVENTS = 1 << 24  # 218 MB of EVENT_DTYPE reserved at most before it grows
+_COPY_TRIM_BYTES = 32 << 20  # glibc's largest heap-served block (DEFAULT_MMAP_THRESHOLD_MAX)
 
 
 @numba.njit(cache=True, nogil=True)
-def _convert_dv(src: np.ndarray, dst: np.ndarray) -> None:  # pragma: no cover - compiled
-    """One pass over dv's records (rows of 16 bytes: int64 time, int16 x, int16 y,
-    polarity byte) into EVENT_DTYPE rows (13 bytes: x, y, p, t), byte by byte;
-    polarity 0 -> -1 (0xFF), else +1."""
+def _convert_dv(src, dst, start, width, height):  # pragma: no cover - compiled
+    """dv's event records -> ``EVENT_DTYPE`` rows ``dst[start : start + len(src)]``.
+
+    One pass: ``t`` = timestamp (µs), ``x``, ``y`` as recorded, ``p`` = +1 where the
+    AEDAT polarity is nonzero (ON), else -1 (OFF). Returns whether every event lies
+    inside the sensor, ``0 <= x < width`` and ``0 <= y < height`` (the int16 ``x``, ``y``
+    are read as uint16, so a negative one is out of range; no branch in the loop).
+    """
+    x_max = np.uint16(0)
+    y_max = np.uint16(0)
     for i in range(src.shape[0]):
-        for j in range(8):
-            dst[i, 5 + j] = src[i, j]
-        dst[i, 0] = src[i, 8]
-        dst[i, 1] = src[i, 9]
-        dst[i, 2] = src[i, 10]
-        dst[i, 3] = src[i, 11]
-        dst[i, 4] = 1 if src[i, 12] != 0 else 255
+        s = src[i]
+        d = dst[start + i]
+        ux = np.uint16(s.x)
+        uy = np.uint16(s.y)
+        x_max = max(x_max, ux)
+        y_max = max(y_max, uy)
+        d.x = ux
+        d.y = uy
+        d.p = np.int8(2 * (s.polarity != 0) - 1)
+        d.t = s.timestamp
+    return x_max < width and y_max < height
 
 
-_LAYOUT_CHECKED: dict[np.dtype, bool] = {}
+def _check_dv_dtype(p: Path, dt: np.dtype) -> None:
+    names = dt.names
+    if names is None or any(f not in names for f in _DV_FIELDS):
+        raise ValueError(
+            f"{p}: dv-processing gave event records with fields {names}; "
+            f"expected {', '.join(_DV_FIELDS)}"
+        )
 
 
-def _is_dv_layout(dt: np.dtype) -> bool:
-    """Whether dv's event dtype is the one :func:`_convert_dv` assumes (cached)."""
-    ok = _LAYOUT_CHECKED.get(dt)
-    if ok is None:
-        ok = _LAYOUT_CHECKED[dt] = _check_dv_layout(dt)
-    return ok
+def _raise_outside(p: Path, a: np.ndarray, start: int, width: int, height: int) -> None:
+    """``ValueError`` naming the file, the first event of dv's records ``a`` outside
+    the sensor (its index in the file: ``start`` + index in ``a``) and the bound."""
+    x, y = a["x"].astype(np.int64), a["y"].astype(np.int64)
+    bad = int(np.argmax((x < 0) | (x >= width) | (y < 0) | (y >= height)))
+    if not 0 <= x[bad] < width:
+        what = f"x={int(x[bad])} is outside the sensor (width={width})"
+    else:
+        what = f"y={int(y[bad])} is outside the sensor (height={height})"
+    raise ValueError(f"{p}: events: event {start + bad} at {what}; the geometry is the "
+                     "event stream's resolution")
 
 
-def _check_dv_layout(dt: np.dtype) -> bool:
-    f = dt.fields
-    if f is None or dt.itemsize != _DV_LAYOUT[4] or sys.byteorder != "little":
-        return False
-    want = {"timestamp": ("<i8", 0), "x": ("<i2", 8), "y": ("<i2", 10)}
-    for key, (code, off) in want.items():
-        if key not in f or f[key][0] != np.dtype(code) or f[key][1] != off:
-            return False
-    return "polarity" in f and f["polarity"][0].itemsize == 1 and f["polarity"][1] == 12
+def _next_batch(p: Path, reader: Any) -> Any:
+    try:
+        return reader.getNextEventBatch()
+    except Exception as exc:  # dv-processing raises RuntimeError for damaged packets
+        raise ValueError(f"{p}: damaged event packet ({_short(exc)})") from exc
 
 
-def _out_layout_ok() -> bool:
-    f = EVENT_DTYPE.fields
-    if f is None:
-        return False
-    return (EVENT_DTYPE.itemsize, f["x"][1], f["y"][1], f["p"][1], f["t"][1]) == (
-        _OUT_LAYOUT[4], *_OUT_LAYOUT[:4])
+_TRIGGER_CODES: dict[str, dict[int, Any]] = {}
 
 
-_FAST_OUT = _out_layout_ok()
-
-
-def _convert_into(a: np.ndarray, out: np.ndarray) -> None:
-    """dv's event array (timestamp, x, y, polarity) -> EVENT_DTYPE, written into ``out``
-    (a contiguous slice): one compiled pass for dv's usual layout, else field by field."""
-    m = a.shape[0]
-    if (_FAST_OUT and m and _is_dv_layout(a.dtype) and a.flags.c_contiguous
-            and out.flags.c_contiguous):
-        _convert_dv(a.view(np.uint8).reshape(m, _DV_LAYOUT[4]),
-                    out.view(np.uint8).reshape(m, _OUT_LAYOUT[4]))
-        return
-    out["t"] = a["timestamp"]
-    out["x"] = a["x"]
-    out["y"] = a["y"]
-    out["p"] = _POLARITY.take((a["polarity"] != 0).view(np.uint8))
-
-
-def _events(batch: Any) -> np.ndarray:
-    """dv EventStore -> EVENT_DTYPE array."""
-    a = batch.numpy()
-    out = np.empty(a.shape[0], dtype=EVENT_DTYPE)
-    _convert_into(a, out)
-    return out
+def _trigger_codes() -> tuple[dict[int, str], dict[int, tuple[bool, int]]]:
+    """dv.TriggerType value -> name, and external value -> (rising, id); built once
+    (``int(record.type)`` and a look-up by int cost far less than ``.type.name``)."""
+    if not _TRIGGER_CODES:
+        members = _dv().TriggerType.__members__
+        _TRIGGER_CODES["names"] = {int(m): name for name, m in members.items()}
+        _TRIGGER_CODES["edges"] = {int(members[name]): edge
+                                   for name, edge in EXTERNAL_TRIGGER_TYPES.items()
+                                   if name in members}
+    return _TRIGGER_CODES["names"], _TRIGGER_CODES["edges"]
 
 
 def _read_triggers(p: Path, reader: Any) -> tuple[np.ndarray, dict[str, int]]:
@@ -163,6 +164,8 @@ def _read_triggers(p: Path, reader: Any) -> tuple[np.ndarray, dict[str, int]]:
     counts: dict[str, int] = {}
     if not reader.isTriggerStreamAvailable():
         return empty_triggers(), counts
+    names, edges = _trigger_codes()
+    by_code: dict[int, int] = {}
     ts: list[int] = []
     rising: list[bool] = []
     ids: list[int] = []
@@ -171,16 +174,20 @@ def _read_triggers(p: Path, reader: Any) -> tuple[np.ndarray, dict[str, int]]:
             batch = reader.getNextTriggerBatch()
             if batch is None:
                 break
-            for rec in batch:
-                tname = rec.type.name
-                counts[tname] = counts.get(tname, 0) + 1
-                edge = EXTERNAL_TRIGGER_TYPES.get(tname)
+            for i in range(len(batch)):  # indexing: pybind's iterator costs µs per batch
+                rec = batch[i]
+                code = int(rec.type)
+                by_code[code] = by_code.get(code, 0) + 1
+                edge = edges.get(code)
                 if edge is not None:
                     ts.append(int(rec.timestamp))
                     rising.append(edge[0])
                     ids.append(edge[1])
     except Exception as exc:
         raise ValueError(f"{p}: damaged trigger stream ({_short(exc)})") from exc
+    for code, c in by_code.items():
+        name = names.get(code, f"TRIGGER_TYPE_{code}")
+        counts[name] = counts.get(name, 0) + c
     if not ts:
         return empty_triggers(), counts
     tr = make_triggers(np.array(ts, dtype=np.int64), np.array(rising),
@@ -228,16 +235,31 @@ def iter_aedat(
     return _iter(p, chunk_events)
 
 
+def _geometry(p: Path, reader: Any) -> tuple[int, int]:
+    res = reader.getEventResolution()
+    if res is None:
+        raise ValueError(f"{p}: the event stream gives no resolution")
+    return int(res[0]), int(res[1])
+
+
 def _packets(p: Path, reader: Any) -> Iterator[np.ndarray]:
+    """Each non-empty dv packet as its own EVENT_DTYPE array (pixels checked)."""
+    width, height = _geometry(p, reader)
+    seen = 0
     while True:
-        try:
-            batch = reader.getNextEventBatch()
-        except Exception as exc:
-            raise ValueError(f"{p}: damaged event packet ({_short(exc)})") from exc
+        batch = _next_batch(p, reader)
         if batch is None:
             return
-        if len(batch):
-            yield _events(batch)
+        a = batch.numpy()
+        m = a.shape[0]
+        if m == 0:
+            continue
+        _check_dv_dtype(p, a.dtype)
+        out = np.empty(m, dtype=EVENT_DTYPE)
+        if not _convert_dv(a, out, 0, width, height):
+            _raise_outside(p, a, seen, width, height)
+        seen += m
+        yield out
 
 
 def _iter(p: Path, chunk_events: int | None) -> Iterator[tuple[np.ndarray, np.ndarray]]:
@@ -252,44 +274,61 @@ def _iter(p: Path, chunk_events: int | None) -> Iterator[tuple[np.ndarray, np.nd
     yield from paired
 
 
-def _read_all_events(p: Path, reader: Any) -> np.ndarray:
-    """Every event: dv's packets are gathered, then converted straight into one array
-    of the exact size (no concatenation, no second copy)."""
-    arrays = []
+def _read_all_events(p: Path, reader: Any, width: int, height: int) -> np.ndarray:
+    """Every event, each dv packet converted as it arrives (still in cache) into one
+    buffer with room for ``file size / 2`` events (reserved memory that is never
+    written costs nothing), doubled when full.
+
+    The buffer is then trimmed to the events read: below ``_COPY_TRIM_BYTES`` by a
+    copy into an exact-size array (about 0.1 ms per MB; the allocator then reuses the
+    same memory from one read to the next instead of mapping, and faulting in, fresh
+    pages each time), above it in place (``realloc``: no second copy, no double peak).
+    """
+    cap = min(max(p.stat().st_size // 2, 1024), _MAX_INITIAL_EVENTS)
+    buf = np.empty(cap, dtype=EVENT_DTYPE)
     n = 0
+    checked: np.dtype | None = None
     while True:
-        try:
-            batch = reader.getNextEventBatch()
-        except Exception as exc:
-            raise ValueError(f"{p}: damaged event packet ({_short(exc)})") from exc
+        batch = _next_batch(p, reader)
         if batch is None:
             break
         a = batch.numpy()
-        if a.shape[0]:
-            arrays.append(a)
-            n += a.shape[0]
-    out = np.empty(n, dtype=EVENT_DTYPE)
-    i = 0
-    for a in arrays:
         m = a.shape[0]
-        _convert_into(a, out[i : i + m])
-        i += m
+        if m == 0:
+            continue
+        if checked is None or a.dtype != checked:
+            _check_dv_dtype(p, a.dtype)
+            checked = a.dtype
+        if n + m > cap:
+            cap = max(2 * cap, n + m)
+            buf.resize(cap, refcheck=False)  # the only reference is ours
+        if not _convert_dv(a, buf, n, width, height):
+            _raise_outside(p, a, n, width, height)
+        n += m
+    if n == cap:
+        return buf
+    if n * EVENT_DTYPE.itemsize > _COPY_TRIM_BYTES:
+        buf.resize(n, refcheck=False)
+        return buf
+    out = np.empty(n, dtype=EVENT_DTYPE)
+    out.view(np.uint8)[:] = buf.view(np.uint8)[: out.nbytes]  # a memcpy
     return out
 
 
 def read_aedat(path: str | os.PathLike[str]) -> Recording:
     """Read a whole AEDAT 4.0 file: events, external trigger edges, geometry from the
-    event stream's resolution, and metadata (camera, streams, ``trigger_records``)."""
+    event stream's resolution, and metadata (camera, streams, ``trigger_records``).
+
+    An event outside the resolution raises ``ValueError`` naming the file, the event
+    and the bound."""
     p = _require_file(path)
     reader = _open(p)
-    res = reader.getEventResolution()
-    if res is None:
-        raise ValueError(f"{p}: the event stream gives no resolution")
+    width, height = _geometry(p, reader)
     triggers, counts = _read_triggers(p, reader)
-    events = _read_all_events(p, reader)
+    events = _read_all_events(p, reader, width, height)
     meta = _metadata(p, reader, counts)
     logger.info("%s: AEDAT 4.0 from %s, %dx%d, %d events, %d external trigger edges "
-                "(%d trigger records)", p, meta["camera"], res[0], res[1], events.size,
+                "(%d trigger records)", p, meta["camera"], width, height, events.size,
                 triggers.size, sum(counts.values()))
-    return _recording(str(p), events=events, width=int(res[0]), height=int(res[1]),
+    return _recording(str(p), events=events, width=width, height=height,
                       triggers=triggers, metadata=meta)
