@@ -776,3 +776,305 @@ def test_flipped_bits(tmp_path: Path, fuzz_seed_file: bytes, flips: list[int]) -
     path = tmp_path / "flip.raw"
     path.write_bytes(bytes(data))
     _decode_or_value_error(path)
+
+
+# --------------------------------------------------------------------------------------
+# parallel EVT 3.0 decoding: the same result as the sequential decoder, however cut
+# --------------------------------------------------------------------------------------
+
+EVT3_FILES = ("evtemmap_imx636_evt3.raw", "gen41_evt3.raw", "imx636_evt3_triggers.raw")
+
+
+def _force_parallel(monkeypatch: pytest.MonkeyPatch, threads: int) -> list[int]:
+    """Decode every EVT 3.0 payload / block in parallel parts; returns a call counter."""
+    calls: list[int] = []
+    real = pr._evt3_decode_parallel
+
+    def counting(*args: Any, **kwargs: Any) -> Any:
+        calls.append(len(args[4]) - 1)  # parts
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(pr, "_decode_threads", lambda: threads)
+    monkeypatch.setattr(pr, "_PARALLEL_MIN_WORDS", 1)
+    monkeypatch.setattr(pr, "_PARALLEL_MIN_PART_WORDS", 1)
+    monkeypatch.setattr(pr, "_evt3_decode_parallel", counting)
+    return calls
+
+
+def _sequential(path: Path, **kwargs: Any) -> tuple[Recording, list[tuple[np.ndarray, np.ndarray]]]:
+    """read_raw and iter_raw on one thread (the reference)."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(pr, "_decode_threads", lambda: 1)
+        return pr.read_raw(path), list(pr.iter_raw(path, **kwargs))
+
+
+def _assert_same_chunks(
+    ours: list[tuple[np.ndarray, np.ndarray]], ref: list[tuple[np.ndarray, np.ndarray]]
+) -> None:
+    assert [c[0].shape[0] for c in ours] == [c[0].shape[0] for c in ref]
+    for (ev, tr), (ev_ref, tr_ref) in zip(ours, ref, strict=True):
+        np.testing.assert_array_equal(ev, ev_ref)
+        np.testing.assert_array_equal(tr, tr_ref)
+
+
+def _decode_in_parts(
+    words: np.ndarray, width: int, height: int, starts: list[int], first_apart: bool = False
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int, np.ndarray]:
+    """Events, triggers, trigger index, status, stop word and end state of a parallel decode
+    (all parts in one buffer, or part 0 in the result and the others in scratch)."""
+    state = np.zeros(pr._k.EVT3_STATE_SIZE, np.int64)
+    out = np.empty(pr._evt3_scratch_size(starts), EVENT_DTYPE)
+    if first_apart:
+        scratch = np.empty(pr._evt3_scratch_size(starts, 1), EVENT_DTYPE)
+        dec = pr._evt3_decode_parallel(words, state, width, height, starts, scratch, first=out)
+    else:
+        dec = pr._evt3_decode_parallel(words, state, width, height, starts, out)
+    events = pr._join_pieces(dec, out)[: dec.n_events]
+    return events, dec.triggers, dec.tr_index, dec.status, dec.pos, state
+
+
+def _evt3_words(path: Path) -> np.ndarray:
+    info = pr.raw_info(path)
+    return np.frombuffer(path.read_bytes()[info["header_bytes"] :], "<u2").copy()
+
+
+def _sequential_state(words: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Decoder state after the whole stream, from one sequential kernel call."""
+    state = np.zeros(pr._k.EVT3_STATE_SIZE, np.int64)
+    events = np.empty(12 * words.shape[0] + 64, EVENT_DTYPE)
+    triggers = np.empty(words.shape[0] + 1, TRIGGER_DTYPE)
+    status, *_ = pr._k.decode_evt3(
+        words, 0, state, width, height, events, 0, events.shape[0], triggers, 0,
+        np.empty(0, np.int64),
+    )
+    assert status == pr._k.STATUS_DONE
+    return state
+
+
+@pytest.mark.parametrize("name", EVT3_FILES)
+@pytest.mark.parametrize("threads", [2, 3, 7])
+def test_evt3_parallel_equals_sequential_on_real_files(
+    name: str, threads: int, data_dir: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    path = data_dir / "events" / name
+    kwargs = {"chunk_events": 4096, "block_bytes": 1 << 18}
+    rec_ref, chunks_ref = _sequential(path, **kwargs)
+    calls = _force_parallel(monkeypatch, threads)
+    rec = pr.read_raw(path)
+    assert calls and calls[0] == pr._PARTS_PER_THREAD * threads  # it did run in parts
+    np.testing.assert_array_equal(rec.events, rec_ref.events)
+    np.testing.assert_array_equal(rec.triggers, rec_ref.triggers)
+    _assert_same_chunks(list(pr.iter_raw(path, **kwargs)), chunks_ref)
+
+
+@pytest.mark.parametrize("name", EVT3_FILES)
+def test_evt3_parallel_without_nearby_vector_base(
+    name: str, data_dir: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Parts that must look up the vector base later (or take it from the part before).
+    path = data_dir / "events" / name
+    rec_ref, chunks_ref = _sequential(path, chunk_events=50_000)
+    _force_parallel(monkeypatch, 5)
+    monkeypatch.setattr(pr, "_BASE_SCAN_WORDS", 0)
+    monkeypatch.setattr(pr, "_SCRATCH_KEEP_EVENTS", 0)  # read_raw: every part in the result
+    np.testing.assert_array_equal(pr.read_raw(path).events, rec_ref.events)
+    _assert_same_chunks(list(pr.iter_raw(path, chunk_events=50_000)), chunks_ref)
+
+
+@pytest.fixture(scope="module")
+def evt3_mixed_stream(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Recording]:
+    """An EVT 3.0 file with every kind of word: single events, 32-column vector groups,
+    short runs, triggers, a gap of more than one 24-bit wrap and a dense vector burst."""
+    width, height = 96, 6
+    rng = np.random.default_rng(23)
+    rows: list[tuple[int, int, int, int]] = []
+    t = 1000
+    for _ in range(60):  # single events on a few rows
+        t += int(rng.integers(0, 40))
+        rows.append((t, int(rng.integers(0, width)), int(rng.integers(0, height)), 1))
+    for k in range(6):  # vector runs: full groups, partial groups, a short run
+        t += 5
+        xs = [32 + x for x in range(32)] if k % 2 == 0 else [64 + x for x in (1, 2, 5, 9, 30)]
+        rows += [(t, x, k % height, 1 if k % 3 else -1) for x in xs]
+    t += 2**24 + 4321  # more than a wrap: 4,097 TIME_HIGH words
+    for k in range(120):  # dense vector burst: many more events than words
+        t += 1
+        rows += [(t, x, k % height, -1) for x in range(width)]
+    for _ in range(30):
+        t += int(rng.integers(0, 5000))
+        rows.append((t, int(rng.integers(0, width)), int(rng.integers(0, height)), -1))
+    events = _ev(rows)
+    tt = np.sort(rng.choice(events["t"], 9, replace=False))
+    triggers = make_triggers(tt, rising=np.arange(9) % 2 == 0, id=np.arange(9) % 16)
+    rec = Recording(events, width, height, triggers)
+    path = tmp_path_factory.mktemp("par") / "mixed.raw"
+    pr.write_raw_evt3(path, rec)
+    return path, rec
+
+
+def test_evt3_parallel_split_at_every_word(evt3_mixed_stream: tuple[Path, Recording]) -> None:
+    path, rec = evt3_mixed_stream
+    words = _evt3_words(path)
+    kinds = set((words >> 12).tolist())
+    assert {0x0, 0x2, 0x3, 0x4, 0x5, 0x6, 0x8, 0xA} <= kinds
+    n = words.shape[0]
+    assert rec.events.shape[0] > n  # the burst makes more events than words
+    end_state = _sequential_state(words, rec.width, rec.height)
+    # the number of events before each trigger (triggers come before events of their µs)
+    tr_index = np.searchsorted(rec.events["t"], rec.triggers["t"], side="left")
+    cuts = [[0, s, n] for s in range(1, n)]
+    rng = np.random.default_rng(5)
+    cuts += [[0, *sorted(rng.choice(np.arange(1, n), 6, replace=False).tolist()), n]
+             for _ in range(20)]
+    for i, starts in enumerate(cuts):
+        events, triggers, index, status, pos, state = _decode_in_parts(
+            words, rec.width, rec.height, starts, first_apart=i % 2 == 1
+        )
+        assert (status, pos) == (pr._k.STATUS_DONE, n), starts
+        np.testing.assert_array_equal(events, rec.events, err_msg=str(starts))
+        np.testing.assert_array_equal(triggers, rec.triggers, err_msg=str(starts))
+        np.testing.assert_array_equal(index, tr_index, err_msg=str(starts))
+        np.testing.assert_array_equal(state, end_state, err_msg=str(starts))
+
+
+EVT3_TRICKY_WORDS = [
+    0x2005,  # before any TIME_HIGH: dropped
+    0x3004,  # VECT_BASE_X before any TIME_HIGH: dropped
+    0x8001,  # TIME_HIGH 1
+    0x4FFF,  # vector with no row yet: dropped, base not advanced
+    0x0803,  # y = 3
+    0x4FFF,  # vector with no VECT_BASE_X yet: dropped, the base is not set
+    0x6010,  # TIME_LOW 0x10
+    0x3810,  # VECT_BASE_X 16, ON
+    0x4003,  # x = 16, 17; base -> 28
+    0x6008,  # TIME_LOW 8: steps back
+    0x5081,  # x = 28, 35; base -> 36
+    0x1002,  # non-CD row
+    0x4FFF,  # vector on a non-CD row: dropped, base stays 36
+    0x2001,  # event on a non-CD row: dropped
+    0xA101,  # trigger on channel 1
+    0x0002,  # y = 2
+    0x4001,  # x = 36; base -> 48
+    0x8001,  # the same TIME_HIGH again: TIME_LOW kept
+    0x2805,  # ON at x = 5, t = 4096 + 8
+    0x8002,  # TIME_HIGH 2: TIME_LOW reset to 0
+    0x2006,  # OFF at x = 6, t = 8192
+    0x6FFF,  # TIME_LOW 0xFFF
+    0x8003,  # TIME_HIGH 3: TIME_LOW reset to 0
+    0x2009,  # OFF at x = 9, t = 3 * 4096
+    0x7123,  # CONTINUED_4: ignored
+    0x8FFF,  # TIME_HIGH 0xFFF
+    0x8000,  # TIME_HIGH 0: a wrap
+    0x2807,  # ON at x = 7, t = 2**24
+    0xA000,  # trigger on channel 0
+    0x8800,  # TIME_HIGH 0x800
+    0x8000,  # TIME_HIGH 0: a fall of exactly 2048, another wrap
+    0x6007,  # TIME_LOW 7
+    0x4001,  # x = 48; base -> 60
+    0xE012,  # OTHERS: ignored
+    0x2008,  # OFF at x = 8, t = 2 * 2**24 + 7
+]
+
+
+def test_evt3_parallel_hand_built_stream_every_cut(tmp_path: Path) -> None:
+    words = np.array(EVT3_TRICKY_WORDS, "<u2")
+    path = _write(tmp_path / "tricky.raw", EVT3_HEADER, words)
+    expected = _ev([
+        (4096 + 0x10, 16, 3, 1), (4096 + 0x10, 17, 3, 1), (4096 + 8, 28, 3, 1),
+        (4096 + 8, 35, 3, 1), (4096 + 8, 36, 2, 1), (4096 + 8, 5, 2, 1), (8192, 6, 2, -1),
+        (3 * 4096, 9, 2, -1), (2**24, 7, 2, 1), (2 * 2**24 + 7, 48, 2, 1),
+        (2 * 2**24 + 7, 8, 2, -1),
+    ])
+    rec_ref, _ = _sequential(path)
+    np.testing.assert_array_equal(rec_ref.events, expected)
+    np.testing.assert_array_equal(rec_ref.triggers, _tr([(4096 + 8, True, 1), (2**24, False, 0)]))
+    end_state = _sequential_state(words, 64, 8)
+    n = words.shape[0]
+    for base_scan in (pr._BASE_SCAN_WORDS, 0, 2):
+        for a, b in itertools.combinations(range(n + 1), 2):
+            starts = sorted({0, a, b, n})
+            with pytest.MonkeyPatch.context() as mp:
+                mp.setattr(pr, "_BASE_SCAN_WORDS", base_scan)
+                events, triggers, _, status, _, state = _decode_in_parts(
+                    words, 64, 8, starts, first_apart=(a + b) % 2 == 1
+                )
+            assert status == pr._k.STATUS_DONE
+            np.testing.assert_array_equal(events, expected, err_msg=str(starts))
+            np.testing.assert_array_equal(triggers, rec_ref.triggers, err_msg=str(starts))
+            np.testing.assert_array_equal(state, end_state, err_msg=str(starts))
+
+
+@pytest.mark.parametrize(
+    ("chunk_events", "block_bytes"), [(1, 8), (3, 16), (4, 64), (100, 1 << 20)]
+)
+def test_evt3_parallel_blocks_carry_state(
+    tmp_path: Path,
+    evt3_mixed_stream: tuple[Path, Recording],
+    chunk_events: int,
+    block_bytes: int,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # Every block decoded in parallel parts, the state carried from block to block.
+    tricky = _write(tmp_path / "tricky.raw", EVT3_HEADER, np.array(EVT3_TRICKY_WORDS, "<u2"))
+    path, _ = evt3_mixed_stream
+    refs = {p: _sequential(p, chunk_events=chunk_events, block_bytes=block_bytes)[1]
+            for p in (tricky, path)}
+    calls = _force_parallel(monkeypatch, 3)
+    for p, ref in refs.items():
+        _assert_same_chunks(
+            list(pr.iter_raw(p, chunk_events=chunk_events, block_bytes=block_bytes)), ref
+        )
+    assert calls
+
+
+@pytest.mark.parametrize(
+    ("words", "offset_words", "events_before"),
+    [
+        # x=64 after three events, x=65 later
+        ([0x8000, 0x0001, 0x2001, 0x2002, 0x2003, 0x2040, 0x2004, 0x2041, 0x2005], 5, 3),
+        # y=8 at the first event, x=64 later
+        ([0x8000, 0x0008, 0x6001, 0x2001, 0x0001, 0x2002, 0x2040], 3, 0),
+        # x=88 from a vector word, y=9 later
+        ([0x8000, 0x0001, 0x2001, 0x303C, 0x4000, 0x4000, 0x4010, 0x2003, 0x0009, 0x2001], 6, 1),
+    ],
+)
+def test_evt3_parallel_reports_the_first_error(
+    tmp_path: Path,
+    words: list[int],
+    offset_words: int,
+    events_before: int,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    path = _write(tmp_path / "bad.raw", EVT3_HEADER, np.array(words, dtype="<u2"))
+    offset = len(EVT3_HEADER) + 2 * offset_words
+    ref_chunks = []
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(pr, "_decode_threads", lambda: 1)
+        with pytest.raises(ValueError, match=rf"byte offset {offset}\b"):
+            for chunk in pr.iter_raw(path, chunk_events=1):
+                ref_chunks.append(chunk)
+    _force_parallel(monkeypatch, 3)
+    with pytest.raises(ValueError, match=rf"bad\.raw.*byte offset {offset}\b"):
+        pr.read_raw(path)
+    chunks = []
+    with pytest.raises(ValueError, match=rf"byte offset {offset}\b"):
+        for chunk in pr.iter_raw(path, chunk_events=1):
+            chunks.append(chunk)
+    _assert_same_chunks(chunks, ref_chunks)  # the chunks before the error come out first
+    assert len(chunks) == events_before  # one event a chunk
+
+
+@pytest.mark.parametrize("parallel", [False, True])
+def test_iter_raw_last_chunk_never_exceeds_chunk_events(
+    tmp_path: Path, parallel: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A 32-column vector group at the very end makes 32 events from the last words.
+    words = np.array([0x8000, 0x0001, 0x2001, 0x3800, 0x4FFF, 0x4FFF, 0x50FF], "<u2")
+    path = _write(tmp_path / "v.raw", "% evt 3.0\n% geometry 64x8\n% end\n", words)
+    if parallel:
+        _force_parallel(monkeypatch, 2)
+    for chunk_events in (1, 5, 32, 33):
+        chunks = list(pr.iter_raw(path, chunk_events=chunk_events))
+        sizes = [c[0].shape[0] for c in chunks]
+        assert sum(sizes) == 33
+        assert all(s == chunk_events for s in sizes[:-1]) and 0 < sizes[-1] <= chunk_events

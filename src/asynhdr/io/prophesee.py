@@ -17,6 +17,11 @@ wraps are counted as OpenEB counts them, and an EVT 3.0 TIME_LOW that steps back
 sets the time back, so that decoded times stay in file order and may be
 non-monotone (:func:`asynhdr.events.sort_events` sorts them where needed).
 
+An EVT 3.0 payload (:func:`read_raw`) or block (:func:`iter_raw`) of 256 KiB or
+more is decoded in parts on several threads (``NUMBA_NUM_THREADS``, by default
+one per CPU); the result, the chunks and the errors are exactly those of the
+decoder running on one thread.
+
 Events come out in the project's dtype (``x, y`` uint16, ``p`` int8 +1 ON / -1
 OFF, ``t`` int64 µs); trigger edges in ``TRIGGER_DTYPE`` (``t`` µs, ``rising`` the
 edge's value bit, ``id`` the input channel). An event outside the sensor
@@ -35,13 +40,17 @@ triggers interleaved in time), atomically.
 from __future__ import annotations
 
 import contextlib
+import itertools
 import logging
 import os
+import threading
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from types import TracebackType
 from typing import Any, BinaryIO
 
+import numba
 import numpy as np
 
 from asynhdr._atomic import atomic_path
@@ -87,6 +96,17 @@ _LEGACY_EVT_VALUES = {"2.0": "evt2", "2.1": "evt21", "3.0": "evt3"}
 _MAX_HEADER_BYTES = 16 << 20
 _MAX_COORDINATE = 2048  # 11-bit addresses in every EVT format
 _DEFAULT_BLOCK_BYTES = 1 << 22
+
+# EVT 3.0 payloads (read_raw) and blocks (iter_raw) of at least this many words are
+# decoded in parallel, in parts of at least _PARALLEL_MIN_PART_WORDS words each.
+_PARALLEL_MIN_WORDS = 1 << 17
+_PARALLEL_MIN_PART_WORDS = 1 << 15
+# Parts per thread: the threads take parts in turn, so that a thread slowed down by
+# other work on the machine holds back only a small part.
+_PARTS_PER_THREAD = 4
+# How far back (words) a part looks for the last VECT_BASE_X before it leaves the
+# vector base to be found when a vector word needs it (streams without vectors).
+_BASE_SCAN_WORDS = 1 << 12
 
 # Sensor geometry (width, height) by what a header names.
 _VGA = (640, 480)
@@ -445,7 +465,8 @@ def _run_kernel(
 ) -> tuple[int, int, int, int]:
     if info.format == "evt3":
         res = _k.decode_evt3(
-            words, pos, state, info.width, info.height, events, n_ev, limit, triggers, n_tr
+            words, pos, state, info.width, info.height, events, n_ev, limit, triggers, n_tr,
+            _NO_TRIGGER_INDEX,
         )
     elif info.format == "evt2":
         res = _k.decode_evt2(
@@ -521,6 +542,373 @@ def _trim(arr: np.ndarray, n: int) -> np.ndarray:
         return arr[:n].copy()
 
 
+# --------------------------------------------------------------------------------------
+# Parallel EVT 3.0 decoding
+# --------------------------------------------------------------------------------------
+#
+# A block of EVT 3.0 words is cut into parts at word boundaries, a few per thread;
+# the threads take the parts in turn. Each part finds the decoder state at its first
+# word by scanning backwards (_k.evt3_state_at: last row, vector base and time words)
+# and decodes into a region of its own. Only the 24-bit wrap count cannot be found
+# that way: a part starts with the block's count and is shifted by 2**24 µs per wrap
+# of the parts before it once all are done. The events are then copied together in
+# order: into the result (read_raw, where part 0 decodes into the result itself) or
+# into the chunks (iter_raw). The result, the chunks, the end state and the error
+# reported (the first in the stream) equal the sequential decoder's exactly.
+
+_NO_TRIGGER_INDEX = np.empty(0, dtype=np.int64)
+_pool_lock = threading.Lock()
+_pool: ThreadPoolExecutor | None = None
+_pool_pid = -1
+
+
+def _decode_threads() -> int:
+    """Threads that decode in parallel: numba's thread count (``NUMBA_NUM_THREADS``)."""
+    return max(1, int(getattr(numba.config, "NUMBA_NUM_THREADS", 1)))
+
+
+def _forget_pool() -> None:
+    """In a forked child: the parent's threads are gone; start afresh on first use."""
+    global _pool, _pool_lock
+    _pool = None
+    _pool_lock = threading.Lock()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_pool)
+
+
+def _executor() -> ThreadPoolExecutor:
+    """The module's worker threads (one fewer than :func:`_decode_threads`), one pool a process."""
+    global _pool, _pool_pid
+    with _pool_lock:
+        if _pool is None or _pool_pid != os.getpid():
+            _pool = ThreadPoolExecutor(
+                max_workers=max(1, _decode_threads() - 1), thread_name_prefix="asynhdr-evt3"
+            )
+            _pool_pid = os.getpid()
+        return _pool
+
+
+def _evt3_split(n_words: int) -> list[int] | None:
+    """Word indices that cut a block into parallel parts, or None to decode it in one piece."""
+    threads = _decode_threads()
+    if threads < 2 or n_words < _PARALLEL_MIN_WORDS:
+        return None
+    n_parts = min(_PARTS_PER_THREAD * threads, n_words // max(1, _PARALLEL_MIN_PART_WORDS))
+    if n_parts < 2:
+        return None
+    return [n_words * k // n_parts for k in range(n_parts + 1)]
+
+
+class _Part:
+    """What one part of a parallel EVT 3.0 decode produced."""
+
+    def __init__(self) -> None:
+        self.segments: list[tuple[np.ndarray, int, int]] = []  # (buffer, first, count)
+        self.n_events = 0
+        self.triggers = np.empty(16, dtype=TRIGGER_DTYPE)
+        self.tr_at = np.empty(16, dtype=np.int64)  # events of the part before each trigger
+        self.n_tr = 0
+        self.status = _k.STATUS_DONE
+        self.pos = 0
+        self.state = np.zeros(_k.EVT3_STATE_SIZE, dtype=np.int64)
+        self.loop_start = 0  # wrap count the part started with
+        self.offset = 0  # index of the part's first event in the joined buffer
+
+
+def _evt3_decode_part(
+    words: np.ndarray,
+    start: int,
+    stop: int,
+    state0: np.ndarray,
+    width: int,
+    height: int,
+    events: np.ndarray,
+    region: int,
+    region_words: int,
+    at_block_start: bool,
+) -> _Part:
+    """Decode ``words[start:stop]`` of a block that starts in ``state0`` (not modified).
+
+    Events go to ``events[region:]`` (room for ``region_words`` events plus the
+    spare records), then, if the part makes more events than that, to buffers of
+    its own.
+    """
+    part = _Part()
+    state = part.state
+    if at_block_start:
+        state[:] = state0
+    else:
+        _k.evt3_state_at(words, start, state0, state, _BASE_SCAN_WORDS)
+    part.loop_start = int(state[_k.S3_LOOP])
+    view = words[:stop]
+    buf, base, n_ev, limit = events, region, region, region + region_words
+    done = 0  # events of the part in closed segments
+    pos = start
+    n_tr = 0
+    while True:
+        first_tr = n_tr
+        res = _k.decode_evt3(
+            view, pos, state, width, height, buf, n_ev, limit, part.triggers, n_tr, part.tr_at
+        )
+        status, pos, n_ev, n_tr = int(res[0]), int(res[1]), int(res[2]), int(res[3])
+        part.tr_at[first_tr:n_tr] += done - base
+        if status == _k.STATUS_NEED_BASE:
+            # A vector word before any VECT_BASE_X of this part: find the base it needs.
+            full = np.empty_like(state)
+            _k.evt3_state_at(words, pos, state0, full, -1)
+            for slot in (_k.S3_BASE_X, _k.S3_BASE_P, _k.S3_HAS_BASE):
+                state[slot] = full[slot]
+            continue
+        if status != _k.STATUS_FULL:
+            break
+        if n_tr >= part.triggers.shape[0]:
+            part.triggers = _grow(part.triggers, n_tr, 64)
+            part.tr_at = _grow(part.tr_at, n_tr, 64)
+            continue
+        # The part made more events than its region holds: go on in a buffer of its own.
+        part.segments.append((buf, base, n_ev - base))
+        done += n_ev - base
+        spare = _SPARE_EVENTS["evt3"]
+        buf = np.empty(max(stop - pos, 1 << 12) + spare, dtype=EVENT_DTYPE)
+        base = n_ev = 0
+        limit = buf.shape[0] - spare
+    part.segments.append((buf, base, n_ev - base))
+    part.n_events = done + n_ev - base
+    part.n_tr = n_tr
+    part.status = status
+    part.pos = pos
+    return part
+
+
+def _copy_events(dst: np.ndarray, at: int, src: np.ndarray, first: int, n: int) -> None:
+    """``dst[at:at + n] = src[first:first + n]`` as bytes (overlap allowed).
+
+    Copying the packed records as bytes is a plain memory move, ten times faster
+    than numpy's field-by-field copy of a structured dtype.
+    """
+    if n <= 0 or (dst is src and at == first):
+        return
+    size = EVENT_DTYPE.itemsize
+    dst.view(np.uint8)[at * size : (at + n) * size] = src.view(np.uint8)[
+        first * size : (first + n) * size
+    ]
+
+
+class _Decoded:
+    """A block decoded in parallel: its events as pieces of buffers, in stream order."""
+
+    def __init__(
+        self,
+        pieces: list[tuple[np.ndarray, int, int]],
+        triggers: np.ndarray,
+        tr_index: np.ndarray,
+        status: int,
+        pos: int,
+    ) -> None:
+        self.pieces = pieces  # (buffer, first, count)
+        self.n_events = sum(count for _, _, count in pieces)
+        self.triggers = triggers
+        self.tr_index = tr_index  # events of the block before each trigger
+        self.status = status  # as decode_evt3 reports it, at word pos
+        self.pos = pos
+
+
+def _evt3_scratch_size(starts: list[int], first: int = 0) -> int:
+    """Events the scratch of :func:`_evt3_decode_parallel` holds for the parts from ``first``."""
+    return starts[-1] - starts[first] + _SPARE_EVENTS["evt3"] * (len(starts) - 1 - first)
+
+
+def _evt3_decode_parallel(
+    words: np.ndarray,
+    state: np.ndarray,
+    width: int,
+    height: int,
+    starts: list[int],
+    scratch: np.ndarray,
+    first: np.ndarray | None = None,
+) -> _Decoded:
+    """Decode a block of EVT 3.0 words in the parts ``[starts[k], starts[k + 1])``, in parallel.
+
+    ``state`` is the decoder state at the block start and is left as the sequential
+    decoder leaves it (at the error, if there is one). Each part writes its events to
+    its own region of ``scratch`` (the part's word count plus the spare records:
+    ``_evt3_scratch_size(starts)`` events in all), part 0 to the start of ``first``
+    instead when given (then ``_evt3_scratch_size(starts, 1)``), and a part that makes
+    more events than its region holds goes on in buffers of its own. The result lists
+    where the events are, in stream order, up to the first error.
+    """
+    n_parts = len(starts) - 1
+    spare = _SPARE_EVENTS["evt3"]
+    sizes = [starts[k + 1] - starts[k] for k in range(n_parts)]
+    regions: list[tuple[np.ndarray, int]] = []
+    at = 0
+    for k in range(n_parts):
+        if k == 0 and first is not None:
+            regions.append((first, 0))
+            if first.shape[0] < sizes[0] + spare:
+                raise ValueError("_evt3_decode_parallel: first buffer too small")
+        else:
+            regions.append((scratch, at))
+            at += sizes[k] + spare
+    if scratch.shape[0] < at:
+        raise ValueError("_evt3_decode_parallel: scratch buffer too small")
+    state0 = state.copy()
+
+    def run(k: int) -> _Part:
+        buf, region = regions[k]
+        return _evt3_decode_part(
+            words, starts[k], starts[k + 1], state0, width, height, buf, region, sizes[k],
+            k == 0,
+        )
+
+    done: list[_Part | None] = [None] * n_parts
+    turn = itertools.count()  # next() on a count is atomic under the GIL
+
+    def drain() -> None:
+        for k in iter(turn.__next__, None):
+            if k >= n_parts:
+                return
+            done[k] = run(k)
+
+    threads = min(_decode_threads(), n_parts)
+    futures = [_executor().submit(drain) for _ in range(threads - 1)]
+    try:
+        drain()  # this thread takes part 0 first, the one that needs no state scan
+    finally:
+        for f in futures:  # wait for the threads that started; the others have no part left
+            if not f.cancel():
+                f.result()
+    parts = [part for part in done if part is not None]
+    for k, part in enumerate(parts):
+        if part.status != _k.STATUS_DONE:
+            parts = parts[: k + 1]  # the first error in the stream ends it
+            break
+    # Wrap counts and the vector base each part could not know, from the part before.
+    loop = int(parts[0].state[_k.S3_LOOP])
+    offset = parts[0].n_events
+    for prev, part in itertools.pairwise(parts):
+        shift = loop - part.loop_start
+        loop = int(part.state[_k.S3_LOOP]) + shift
+        part.state[_k.S3_LOOP] = loop
+        if part.state[_k.S3_HAS_BASE] < 0:  # no vector word and no VECT_BASE_X in the part
+            for slot in (_k.S3_BASE_X, _k.S3_BASE_P, _k.S3_HAS_BASE):
+                part.state[slot] = prev.state[slot]
+        if shift:
+            for buf, at, count in part.segments:
+                buf["t"][at : at + count] += np.int64(shift) << 24
+            part.triggers["t"][: part.n_tr] += np.int64(shift) << 24
+        part.offset = offset
+        offset += part.n_events
+    last = parts[-1]
+    state[:] = last.state
+    return _Decoded(
+        [seg for part in parts for seg in part.segments if seg[2]],
+        np.concatenate([part.triggers[: part.n_tr] for part in parts]),
+        np.concatenate([part.tr_at[: part.n_tr] + part.offset for part in parts]),
+        last.status,
+        last.pos,
+    )
+
+
+def _join_pieces(dec: _Decoded, out: np.ndarray) -> np.ndarray:
+    """The events of ``dec`` in one array: ``out`` when it is large enough and the pieces
+    that lie in it come first, else a new array.
+
+    The pieces in ``out`` move left, in order; the others are copied on every thread
+    (the copy writes new memory, whose page faults cost as much as the copy itself).
+    """
+    in_out = [buf is out for buf, _, _ in dec.pieces]
+    if dec.n_events > out.shape[0] or in_out != sorted(in_out, reverse=True):
+        out = np.empty(dec.n_events, dtype=EVENT_DTYPE)
+        in_out = [False] * len(dec.pieces)
+    copies: list[tuple[int, np.ndarray, int, int]] = []  # (at, buffer, first, count)
+    dst = 0
+    for (buf, first, count), inside in zip(dec.pieces, in_out, strict=True):
+        if inside:
+            _copy_events(out, dst, buf, first, count)
+        else:
+            copies.append((dst, buf, first, count))
+        dst += count
+    n_copy = sum(c[3] for c in copies)
+    threads = min(_decode_threads(), max(1, n_copy // _PARALLEL_MIN_PART_WORDS))
+    # Cut the copies into one share per thread, of about the same number of events.
+    shares: list[list[tuple[int, np.ndarray, int, int]]] = [[] for _ in range(threads)]
+    quota = -(-n_copy // threads)
+    k = taken = 0
+    for at, buf, first, count in copies:
+        while count:
+            m = min(count, quota - taken)
+            shares[k].append((at, buf, first, m))
+            at, first, count, taken = at + m, first + m, count - m, taken + m
+            if taken == quota:
+                k, taken = min(k + 1, threads - 1), 0
+
+    def copy(share: list[tuple[int, np.ndarray, int, int]]) -> None:
+        for at, buf, first, count in share:
+            _copy_events(out, at, buf, first, count)
+
+    futures = [_executor().submit(copy, share) for share in shares[1:]]
+    try:
+        copy(shares[0])
+    finally:
+        for f in futures:
+            f.result()
+    return out
+
+
+# Scratch buffers of parallel decoding, kept for the next call while small enough.
+_SCRATCH_KEEP_EVENTS = (64 << 20) // EVENT_DTYPE.itemsize
+_scratch_lock = threading.Lock()
+_scratch_kept: list[np.ndarray] = []
+
+
+def _take_scratch(n: int) -> np.ndarray:
+    """An event buffer of at least ``n`` records: one kept from an earlier call, or new.
+
+    Memory already written to costs nothing to write again, while the first write to
+    newly allocated memory costs a page fault per page.
+    """
+    with _scratch_lock:
+        for i, buf in enumerate(_scratch_kept):
+            if buf.shape[0] >= n:
+                return _scratch_kept.pop(i)
+    return np.empty(n, dtype=EVENT_DTYPE)
+
+
+def _give_scratch(buf: np.ndarray) -> None:
+    """Keep ``buf`` for a later :func:`_take_scratch` (at most two, each small enough)."""
+    if buf.shape[0] > _SCRATCH_KEEP_EVENTS:
+        return
+    with _scratch_lock:
+        _scratch_kept.append(buf)
+        _scratch_kept.sort(key=lambda b: b.shape[0], reverse=True)
+        del _scratch_kept[2:]
+
+
+class _Gather:
+    """Copy consecutive runs of events out of a list of pieces ``(buffer, first, count)``."""
+
+    def __init__(self, pieces: list[tuple[np.ndarray, int, int]]) -> None:
+        self.pieces = pieces
+        self.k = 0  # current piece
+        self.used = 0  # events taken from it
+
+    def take(self, out: np.ndarray, n: int) -> None:
+        """Copy the next ``n`` events into ``out[:n]``."""
+        dst = 0
+        while dst < n:
+            buf, first, count = self.pieces[self.k]
+            m = min(n - dst, count - self.used)
+            _copy_events(out, dst, buf, first + self.used, m)
+            dst += m
+            self.used += m
+            if self.used == count:
+                self.k += 1
+                self.used = 0
+
+
 def read_raw(
     path: str | os.PathLike[str], *, width: int | None = None, height: int | None = None
 ) -> Recording:
@@ -548,25 +936,48 @@ def read_raw(
         )
     words = _kernel_view(info, raw)
     state = _new_state(info.format)
-    spare = _SPARE_EVENTS[info.format]
-    capacity = (info.n_words if info.format != "evt21" else 2 * info.n_words) + spare + 1
-    events = np.empty(capacity, dtype=EVENT_DTYPE)
-    triggers = np.empty(64, dtype=TRIGGER_DTYPE)
-    pos = n_ev = n_tr = 0
-    while True:
-        status, pos, n_ev, n_tr = _run_kernel(
-            info, words, pos, state, events, n_ev, events.shape[0], triggers, n_tr
-        )
-        if status == _k.STATUS_DONE:
-            break
-        if status != _k.STATUS_FULL:
-            _raise_decode_error(info, status, pos, state)
-        if n_tr >= triggers.shape[0]:
-            triggers = _grow(triggers, n_tr, 64)
+    starts = _evt3_split(words.shape[0]) if info.format == "evt3" else None
+    if starts is not None:
+        # Part 0 decodes into the result itself, the other parts into scratch kept from
+        # call to call, copied after it: the new memory written is the events' own.
+        # Too large to keep: all parts decode into the result, moved together after.
+        events = np.empty(_evt3_scratch_size(starts), dtype=EVENT_DTYPE)
+        if _evt3_scratch_size(starts, 1) <= _SCRATCH_KEEP_EVENTS:
+            scratch = _take_scratch(_evt3_scratch_size(starts, 1))
+            dec = _evt3_decode_parallel(
+                words, state, info.width, info.height, starts, scratch, first=events
+            )
+            if dec.status == _k.STATUS_DONE:
+                events = _join_pieces(dec, events)
+            _give_scratch(scratch)
         else:
-            events = _grow(events, n_ev, n_ev + 8 * spare)
+            dec = _evt3_decode_parallel(words, state, info.width, info.height, starts, events)
+            if dec.status == _k.STATUS_DONE:
+                events = _join_pieces(dec, events)
+        if dec.status != _k.STATUS_DONE:
+            _raise_decode_error(info, dec.status, dec.pos, state)
+        n_ev, triggers = dec.n_events, dec.triggers
+        del dec
+    else:
+        spare = _SPARE_EVENTS[info.format]
+        capacity = (info.n_words if info.format != "evt21" else 2 * info.n_words) + spare + 1
+        events = np.empty(capacity, dtype=EVENT_DTYPE)
+        triggers = np.empty(64, dtype=TRIGGER_DTYPE)
+        pos = n_ev = n_tr = 0
+        while True:
+            status, pos, n_ev, n_tr = _run_kernel(
+                info, words, pos, state, events, n_ev, events.shape[0], triggers, n_tr
+            )
+            if status == _k.STATUS_DONE:
+                break
+            if status != _k.STATUS_FULL:
+                _raise_decode_error(info, status, pos, state)
+            if n_tr >= triggers.shape[0]:
+                triggers = _grow(triggers, n_tr, 64)
+            else:
+                events = _grow(events, n_ev, n_ev + 8 * spare)
+        triggers = triggers[:n_tr].copy()
     events = _trim(events, n_ev)
-    triggers = triggers[:n_tr].copy()
     tt = triggers["t"]
     if tt.size > 1 and (tt[1:] < tt[:-1]).any():
         order = np.argsort(tt, kind="stable")
@@ -585,7 +996,7 @@ def read_raw(
         info.width,
         info.height,
         n_ev,
-        n_tr,
+        triggers.shape[0],
     )
     metadata = {"format": info.format, "source": str(path), "header": dict(info.fields)}
     return Recording(
@@ -638,10 +1049,10 @@ def _iter_chunks(
     triggers = np.empty(64, dtype=TRIGGER_DTYPE)
     n_ev = n_tr = 0
     yielded = False
-    block = bytearray(block_bytes)
-    block_view = memoryview(block)
-    block_array = np.frombuffer(block, dtype=np.uint8)
     payload_left = info.n_words * ws
+    # No larger than the payload, and not zero-filled: every byte is read before use.
+    block_array = np.empty(max(8, min(block_bytes, payload_left)), dtype=np.uint8)
+    block_view = block_array.data
     words_before = 0  # words of the payload decoded before this block
     with open(info.path, "rb") as f:
         f.seek(info.header_bytes)
@@ -659,6 +1070,43 @@ def _iter_chunks(
                 filled += got
             payload_left -= want
             words = _kernel_view(info, block_array[:want])
+            starts = _evt3_split(words.shape[0]) if info.format == "evt3" else None
+            if starts is not None:
+                # Decode the block in parallel into scratch (kept for the next block or
+                # call), then copy the events, after those carried, into chunks exactly
+                # as the loop below cuts them.
+                scratch = _take_scratch(_evt3_scratch_size(starts))
+                dec = _evt3_decode_parallel(
+                    words, state, info.width, info.height, starts, scratch
+                )
+                n_all = n_ev + dec.n_events
+                all_tr = np.concatenate([triggers[:n_tr], dec.triggers])
+                # A trigger belongs to the chunk being filled when its word is decoded.
+                chunk_of = np.concatenate([np.zeros(n_tr, np.int64), n_ev + dec.tr_index])
+                chunk_of //= chunk_events
+                n_full = n_all // chunk_events
+                cuts = np.searchsorted(chunk_of, np.arange(n_full + 1), side="left")
+                gather = _Gather([(events, 0, n_ev), *dec.pieces])
+                try:
+                    for c in range(n_full):
+                        out = np.empty(chunk_events, dtype=EVENT_DTYPE)
+                        gather.take(out, chunk_events)
+                        yield out, all_tr[cuts[c] : cuts[c + 1]].copy()
+                        yielded = True
+                        del out
+                    n_ev = n_all - n_full * chunk_events
+                    events = np.empty(ev_cap, dtype=EVENT_DTYPE)
+                    gather.take(events, n_ev)
+                finally:  # the chunks are copies: scratch is free again
+                    _give_scratch(scratch)
+                if dec.status != _k.STATUS_DONE:
+                    _raise_decode_error(info, dec.status, words_before + dec.pos, state)
+                left = all_tr[cuts[n_full] :]
+                triggers = np.empty(max(64, left.shape[0]), dtype=TRIGGER_DTYPE)
+                triggers[: left.shape[0]] = left
+                n_tr = left.shape[0]
+                words_before += want // ws
+                continue
             pos = 0
             while True:
                 status, pos, n_ev, n_tr = _run_kernel(
@@ -679,6 +1127,14 @@ def _iter_chunks(
                 else:
                     triggers = _grow(triggers, n_tr, 64)
             words_before += want // ws
+    # A vector word near the end can leave more than chunk_events events (up to 31 more).
+    while n_ev > chunk_events:
+        yield events[:chunk_events], triggers[:n_tr].copy()
+        yielded = True
+        rest = n_ev - chunk_events
+        nxt = np.empty(ev_cap, dtype=EVENT_DTYPE)
+        nxt[:rest] = events[chunk_events:n_ev]
+        events, n_ev, n_tr = nxt, rest, 0
     if n_ev or n_tr or not yielded:
         yield events[:n_ev], triggers[:n_tr].copy()
 
