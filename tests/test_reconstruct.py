@@ -182,3 +182,27 @@ def test_event_validation_names_the_problem(mutate, match) -> None:
         validate_events(ev, width=2, height=1)
     with pytest.raises(ValueError, match="dtype"):
         validate_events(ev.astype([("x", "u2"), ("y", "u2"), ("p", "i2"), ("t", "i8")]))
+
+
+def test_weighted_sums_in_parallel_parts_equal_a_bincount_reference() -> None:
+    """More than a million events are summed in parts on separate threads; parts
+    straddle cycle boundaries. The sums equal a plain numpy computation."""
+    rng = np.random.default_rng(4)
+    n, w, h = 2_500_000, 40, 30
+    t = np.sort(rng.integers(0, 5 * 10_000, n))
+    ev = make_events(rng.integers(0, w, n), rng.integers(0, h, n),
+                     np.where(rng.random(n) < 0.6, 1, -1), t)
+    rec = Recording(events=ev, width=w, height=h)
+    win = CycleWindows(np.arange(5) * 10_000, 9_000.0)
+    s = weighted_sums(rec, win, method="exp", k=10.0)
+    cyc = t // 10_000
+    dt = t - cyc * 10_000
+    keep = dt < 9_000
+    wgt = np.exp2(-10.0 * dt / 9_000.0) * ev["p"]
+    idx = cyc * (w * h) + ev["y"].astype(np.int64) * w + ev["x"]
+    ref = np.bincount(idx[keep], weights=wgt[keep], minlength=5 * w * h).reshape(5, h, w)
+    np.testing.assert_allclose(s, ref, rtol=1e-9, atol=1e-9)
+    # the same events shuffled are sorted first and give the same sums
+    shuffled = Recording(events=ev[rng.permutation(n)], width=w, height=h)
+    np.testing.assert_allclose(weighted_sums(shuffled, win, method="exp", k=10.0), ref,
+                               rtol=1e-9, atol=1e-9)

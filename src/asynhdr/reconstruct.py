@@ -146,35 +146,72 @@ class CycleWindows:
         return int(self.start_us.size)
 
 
-@nb.njit(cache=True)
-def _sums_kernel(x, y, p, t, starts, window_us, width, table, on_only, out):
+@nb.njit(cache=True, parallel=True)
+def _sums_kernel(x, y, p, t, starts, window_us, width, table, on_only, lo, hi, c0, row0,
+                 acc, bad):
     """Scatter-add ``table[t - start] * p`` per cycle and pixel (events sorted by time).
 
-    ``table`` holds the weight of every whole-µs offset in the window. Returns the index
-    of the first event whose time steps back, or -1 when the events are sorted.
+    Events ``lo[k] .. hi[k]`` form part ``k``, summed in parallel into its own rows of
+    ``acc`` (row ``row0[k] + cycle - c0[k]``), so no two threads add to one place.
+    ``table`` holds the weight of every whole-µs offset in the window. ``bad[k]`` is the
+    index of the first event of part ``k`` whose time steps back, or -1.
     """
     ncyc = starts.shape[0]
-    c = 0
     n_tab = table.shape[0]
-    prev = t[0] if t.shape[0] else 0
-    for i in range(t.shape[0]):
-        ti = t[i]
-        if ti < prev:
-            return i
-        prev = ti
-        while c + 1 < ncyc and ti >= starts[c + 1]:
-            c += 1
-        dt = ti - starts[c]
-        if dt < 0 or dt >= n_tab or dt >= window_us:
-            continue
-        pol = p[i]
-        j = np.int64(y[i]) * width + x[i]
-        if on_only:
-            if pol > 0:
-                out[c, j] += 1.0
-        else:
-            out[c, j] += table[dt] * pol
-    return -1
+    for k in nb.prange(lo.shape[0]):
+        bad[k] = -1
+        c = c0[k]
+        i0 = lo[k]
+        prev = t[i0 - 1] if i0 > 0 else t[i0]
+        for i in range(i0, hi[k]):
+            ti = t[i]
+            if ti < prev:
+                bad[k] = i
+                break
+            prev = ti
+            while c + 1 < ncyc and ti >= starts[c + 1]:
+                c += 1
+            dt = ti - starts[c]
+            if dt < 0 or dt >= n_tab or dt >= window_us:
+                continue
+            pol = p[i]
+            j = np.int64(y[i]) * width + x[i]
+            r = row0[k] + c - c0[k]
+            if on_only:
+                if pol > 0:
+                    acc[r, j] += 1.0
+            else:
+                acc[r, j] += table[dt] * pol
+
+
+def _scatter_sums(ev: np.ndarray, windows: CycleWindows, width: int, npx: int,
+                  table: np.ndarray, on_only: bool) -> tuple[np.ndarray, bool]:
+    """Run ``_sums_kernel`` over ``ev`` in parts; ``(sums, sorted)``."""
+    n = int(ev.size)
+    starts = windows.start_us
+    parts = max(1, min(nb.get_num_threads(), n // 1_000_000)) if n else 1
+    bounds = np.linspace(0, n, parts + 1).astype(np.int64)
+    lo, hi = bounds[:-1], bounds[1:]
+    t = ev["t"]
+    first = np.where(lo < n, t[np.minimum(lo, max(n - 1, 0))], 0) if n else np.zeros(1, np.int64)
+    last = np.where(hi > 0, t[np.maximum(hi - 1, 0)], 0) if n else np.zeros(1, np.int64)
+    c0 = np.maximum(np.searchsorted(starts, first, side="right") - 1, 0).astype(np.int64)
+    c1 = np.maximum(np.searchsorted(starts, last, side="right") - 1, 0).astype(np.int64)
+    c1 = np.maximum(c1, c0)
+    rows = c1 - c0 + 1
+    row0 = np.concatenate(([0], np.cumsum(rows)[:-1])).astype(np.int64)
+    acc = np.zeros((int(rows.sum()), npx), dtype=np.float64)
+    bad = np.empty(parts, dtype=np.int64)
+    _sums_kernel(ev["x"], ev["y"], ev["p"], t, starts, float(windows.window_us), width,
+                 table, on_only, lo, hi, c0, row0, acc, bad)
+    if (bad >= 0).any():
+        return acc, False
+    if parts == 1 and rows[0] == windows.n_cycles and c0[0] == 0:
+        return acc, True
+    out = np.zeros((windows.n_cycles, npx), dtype=np.float64)
+    for k in range(parts):
+        out[c0[k]:c1[k] + 1] += acc[row0[k]:row0[k] + rows[k]]
+    return out, True
 
 
 @nb.njit(cache=True)
@@ -215,7 +252,8 @@ def weighted_sums(
 
     ``method`` is a weighting name, or ``"count"`` (the number of ON events). Times are
     whole µs, so ``f`` is tabulated once over the window's offsets and each event costs
-    one look-up and one add. Unsorted events are sorted stably first (and reported).
+    one look-up and one add; parts of the stream are summed on separate threads.
+    Unsorted events are sorted stably first (and reported).
     """
     if method not in WEIGHTINGS and method != "count":
         raise ValueError(f"unknown weighting {method!r}; expected one of "
@@ -223,15 +261,11 @@ def weighted_sums(
     n_tab = math.ceil(windows.window_us)
     table = (np.ones(n_tab) if method == "count"
              else weight(method, np.arange(n_tab) / windows.window_us, k=k))
-    out = np.zeros((windows.n_cycles, rec.height * rec.width), dtype=np.float64)
-    ev = rec.events
-    for _ in range(2):
-        bad = _sums_kernel(ev["x"], ev["y"], ev["p"], ev["t"], windows.start_us,
-                           float(windows.window_us), rec.width, table, method == "count", out)
-        if bad < 0:
-            break
-        out[:] = 0.0
-        ev = _sorted_events(rec)
+    npx = rec.height * rec.width
+    out, ok = _scatter_sums(rec.events, windows, rec.width, npx, table, method == "count")
+    if not ok:
+        out, ok = _scatter_sums(_sorted_events(rec), windows, rec.width, npx, table,
+                                method == "count")
     return out.reshape(windows.n_cycles, rec.height, rec.width)
 
 
