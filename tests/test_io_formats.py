@@ -15,7 +15,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from asynhdr.events import EVENT_DTYPE, Recording, make_events, make_triggers
+from asynhdr.events import EVENT_DTYPE, Recording, make_events, make_triggers, validate_events
 from asynhdr.io import (
     SUPPORTED_FORMATS,
     iter_chunks,
@@ -167,14 +167,15 @@ def write_aedat4_packets(path: Path, packets: list[list[tuple[int, int, int, boo
     del writer  # closes the file
 
 
-@pytest.mark.parametrize("initial_events, copy_trim_bytes", [
-    (None, None),  # the reader's own sizes: no growth, trimmed by a copy
-    (1_000, None),  # the buffer doubles several times
-    (1_000, 0),  # ... and is trimmed in place
+@pytest.mark.parametrize("group_events, initial_events, copy_trim_bytes", [
+    (None, None, None),  # the reader's own sizes: one group, an exact-size array
+    (5_000, None, None),  # groups into a buffer, trimmed by a copy
+    (5_000, 1_000, None),  # the buffer doubles several times
+    (5_000, 1_000, 0),  # ... and is trimmed in place
 ])
 def test_aedat4_many_packets_any_buffer_size(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, initial_events: int | None,
-    copy_trim_bytes: int | None,
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, group_events: int | None,
+    initial_events: int | None, copy_trim_bytes: int | None,
 ) -> None:
     pytest.importorskip("dv_processing")
     from asynhdr.io import aedat
@@ -187,6 +188,8 @@ def test_aedat4_many_packets_any_buffer_size(
     write_aedat4_packets(path, [
         [(int(t[k]), int(x[k]), int(y[k]), bool(on[k])) for k in range(s, s + per_packet)]
         for s in range(0, n, per_packet)])
+    if group_events is not None:
+        monkeypatch.setattr(aedat, "_GROUP_EVENTS", group_events)
     if initial_events is not None:
         monkeypatch.setattr(aedat, "_MAX_INITIAL_EVENTS", initial_events)
     if copy_trim_bytes is not None:
@@ -625,6 +628,8 @@ def _valid_or_named_error(read: Any, path: Path) -> None:
         return
     assert isinstance(rec, Recording)
     assert rec.events.dtype == EVENT_DTYPE
+    # independent of the reader's own checks (Recording.from_checked trusts them)
+    validate_events(rec.events, width=rec.width, height=rec.height, require_sorted=False)
 
 
 @_PROPERTY

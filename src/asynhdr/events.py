@@ -241,14 +241,45 @@ class Recording:
     metadata: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        if int(self.width) <= 0 or int(self.height) <= 0:
-            raise ValueError(
-                f"recording: width and height must be positive, got {self.width}x{self.height}"
-            )
+        self._check_geometry()
         validate_events(
             self.events, width=self.width, height=self.height, require_sorted=False
         )
         validate_triggers(self.triggers)
+
+    def _check_geometry(self) -> None:
+        if int(self.width) <= 0 or int(self.height) <= 0:
+            raise ValueError(
+                f"recording: width and height must be positive, got {self.width}x{self.height}"
+            )
+
+    @classmethod
+    def from_checked(
+        cls,
+        *,
+        events: np.ndarray,
+        width: int,
+        height: int,
+        triggers: np.ndarray | None = None,
+        metadata: dict[str, Any] | None = None,
+    ) -> Recording:
+        """Build a Recording from events a decoder has already checked, event by event,
+        in the pass that produced them: ``EVENT_DTYPE``, every pixel inside ``width`` x
+        ``height``, every polarity +1 or -1.
+
+        Geometry, the events' dtype and shape, and the triggers are checked as in the
+        constructor; the per-event scan (a full pass over the events) is not repeated.
+        """
+        validate_events(events[:0] if isinstance(events, np.ndarray) and events.ndim == 1
+                        else events)
+        rec = object.__new__(cls)
+        for name, value in (("events", events), ("width", width), ("height", height),
+                            ("triggers", empty_triggers() if triggers is None else triggers),
+                            ("metadata", {} if metadata is None else metadata)):
+            object.__setattr__(rec, name, value)
+        rec._check_geometry()
+        validate_triggers(rec.triggers)
+        return rec
 
     @property
     def duration_us(self) -> int:

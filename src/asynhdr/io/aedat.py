@@ -20,9 +20,11 @@ EXTERNAL_GENERATOR_FALLING_EDGE     False        1
 Every record, external or not (APS frame and exposure markers, timestamp resets),
 is counted by type in ``metadata["trigger_records"]``.
 
-Each event packet is converted as it is read, in one compiled pass that also checks
-every pixel against the event stream's resolution: an event outside it raises a
-``ValueError`` naming the file, the event's index and the bound.
+Each event packet is copied out of dv-processing and converted at once (still in
+cache), in one compiled pass that also checks every pixel against the event stream's
+resolution: an event outside it raises a ``ValueError`` naming the file, the event's
+index and the bound. That pass is the whole check: the ``Recording`` is built with
+:meth:`~asynhdr.events.Recording.from_checked` and does not scan the events again.
 """
 
 from __future__ import annotations
@@ -36,8 +38,8 @@ from typing import Any
 import numba
 import numpy as np
 
-from asynhdr.events import EVENT_DTYPE, Recording, empty_triggers, make_triggers
-from asynhdr.io import _pair_triggers, _recording, _require_file
+from asynhdr.events import EVENT_DTYPE, TRIGGER_DTYPE, Recording, empty_triggers
+from asynhdr.io import _pair_triggers, _require_file
 
 __all__ = ["EXTERNAL_TRIGGER_TYPES", "aedat_info", "iter_aedat", "read_aedat"]
 
@@ -77,6 +79,7 @@ def _open(p: Path) -> Any:
     try:
         reader = dv.io.MonoCameraRecording(str(p))
     except Exception as exc:  # dv-processing raises RuntimeError for damaged files
+        _require_file(p)  # a missing file or a folder gets its own message
         raise ValueError(f"{p}: not a readable AEDAT 4.0 file ({_short(exc)})") from exc
     if not reader.isEventStreamAvailable():
         raise ValueError(
@@ -88,6 +91,7 @@ def _open(p: Path) -> Any:
 _DV_FIELDS = ("timestamp", "x", "y", "polarity")
 _MAX_INITIAL_EVENTS = 1 << 24  # 218 MB of EVENT_DTYPE reserved at most before it grows
 _COPY_TRIM_BYTES = 32 << 20  # glibc's largest heap-served block (DEFAULT_MMAP_THRESHOLD_MAX)
+_GROUP_EVENTS = 1 << 22  # events of the dv packets held before converting (64 MB)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -101,9 +105,13 @@ def _convert_dv(src, dst, start, width, height):  # pragma: no cover - compiled
     """
     x_max = np.uint16(0)
     y_max = np.uint16(0)
-    for i in range(src.shape[0]):
+    # Unsigned indices: numba leaves out negative-index wraparound (a fifth faster).
+    m = np.uint64(src.shape[0])
+    first = np.uint64(start)
+    i = np.uint64(0)
+    while i < m:
         s = src[i]
-        d = dst[start + i]
+        d = dst[first + i]
         ux = np.uint16(s.x)
         uy = np.uint16(s.y)
         x_max = max(x_max, ux)
@@ -112,6 +120,7 @@ def _convert_dv(src, dst, start, width, height):  # pragma: no cover - compiled
         d.y = uy
         d.p = np.int8(2 * (s.polarity != 0) - 1)
         d.t = s.timestamp
+        i += np.uint64(1)
     return x_max < width and y_max < height
 
 
@@ -165,35 +174,31 @@ def _read_triggers(p: Path, reader: Any) -> tuple[np.ndarray, dict[str, int]]:
     if not reader.isTriggerStreamAvailable():
         return empty_triggers(), counts
     names, edges = _trigger_codes()
-    by_code: dict[int, int] = {}
-    ts: list[int] = []
-    rising: list[bool] = []
-    ids: list[int] = []
+    records: list[tuple[int, int]] = []  # (type code, timestamp)
     try:
         while True:
             batch = reader.getNextTriggerBatch()
             if batch is None:
                 break
-            for i in range(len(batch)):  # indexing: pybind's iterator costs µs per batch
-                rec = batch[i]
-                code = int(rec.type)
-                by_code[code] = by_code.get(code, 0) + 1
-                edge = edges.get(code)
-                if edge is not None:
-                    ts.append(int(rec.timestamp))
-                    rising.append(edge[0])
-                    ids.append(edge[1])
+            # indexing: pybind's iterator costs µs per batch
+            records.extend((int(r.type), r.timestamp) for r in map(batch.__getitem__,
+                                                                    range(len(batch))))
     except Exception as exc:
         raise ValueError(f"{p}: damaged trigger stream ({_short(exc)})") from exc
-    for code, c in by_code.items():
+    for code in {c for c, _ in records}:
         name = names.get(code, f"TRIGGER_TYPE_{code}")
-        counts[name] = counts.get(name, 0) + c
-    if not ts:
+        counts[name] = counts.get(name, 0) + sum(1 for c, _ in records if c == code)
+    kept = [(t, edges[c]) for c, t in records if c in edges]
+    if not kept:
         return empty_triggers(), counts
-    tr = make_triggers(np.array(ts, dtype=np.int64), np.array(rising),
-                       np.array(ids, dtype=np.uint8))
-    order = np.argsort(tr["t"], kind="stable")
-    return tr[order], counts
+    tr = np.empty(len(kept), dtype=TRIGGER_DTYPE)
+    tr["t"] = [t for t, _ in kept]
+    tr["rising"] = [e[0] for _, e in kept]
+    tr["id"] = [e[1] for _, e in kept]
+    t = tr["t"]
+    if (t[1:] < t[:-1]).any():
+        tr = tr[np.argsort(t, kind="stable")]
+    return tr, counts
 
 
 def _metadata(p: Path, reader: Any, counts: dict[str, int]) -> dict[str, Any]:
@@ -274,37 +279,64 @@ def _iter(p: Path, chunk_events: int | None) -> Iterator[tuple[np.ndarray, np.nd
     yield from paired
 
 
-def _read_all_events(p: Path, reader: Any, width: int, height: int) -> np.ndarray:
-    """Every event, each dv packet converted as it arrives (still in cache) into one
-    buffer with room for ``file size / 2`` events (reserved memory that is never
-    written costs nothing), doubled when full.
+def _convert_group(p: Path, group: list[Any], buf: np.ndarray, n: int, width: int,
+                   height: int) -> int:
+    """Copy each of dv's packets ``group`` out (``numpy()``) and convert it into
+    ``buf[n:]`` at once, while the copy is in cache; return the new event count.
 
-    The buffer is then trimmed to the events read: below ``_COPY_TRIM_BYTES`` by a
-    copy into an exact-size array (about 0.1 ms per MB; the allocator then reuses the
-    same memory from one read to the next instead of mapping, and faulting in, fresh
-    pages each time), above it in place (``realloc``: no second copy, no double peak).
+    On the calling thread: ``numpy()`` holds the GIL, so a second thread mostly waits
+    for it (sharing the packets between two threads measured slower).
     """
-    cap = min(max(p.stat().st_size // 2, 1024), _MAX_INITIAL_EVENTS)
-    buf = np.empty(cap, dtype=EVENT_DTYPE)
-    n = 0
-    checked: np.dtype | None = None
-    while True:
-        batch = _next_batch(p, reader)
-        if batch is None:
-            break
-        a = batch.numpy()
-        m = a.shape[0]
-        if m == 0:
-            continue
-        if checked is None or a.dtype != checked:
-            _check_dv_dtype(p, a.dtype)
-            checked = a.dtype
-        if n + m > cap:
-            cap = max(2 * cap, n + m)
-            buf.resize(cap, refcheck=False)  # the only reference is ours
+    for store in group:
+        a = store.numpy()
+        _check_dv_dtype(p, a.dtype)
         if not _convert_dv(a, buf, n, width, height):
             _raise_outside(p, a, n, width, height)
-        n += m
+        n += a.shape[0]
+    return n
+
+
+def _read_all_events(p: Path, reader: Any, width: int, height: int) -> np.ndarray:
+    """Every event, in one array.
+
+    dv's packets are fetched in groups of about ``_GROUP_EVENTS`` events and kept as
+    dv holds them; each packet is then copied out (``numpy()``) and converted at once,
+    while the copy is still in cache. A file that fits in one group goes straight
+    into an array of its exact size. Larger ones go into a buffer with room for
+    ``file size / 2`` events (reserved memory that is never written costs nothing),
+    doubled when full, then trimmed to the events read: below ``_COPY_TRIM_BYTES`` by a
+    copy into an exact-size array (the allocator then reuses the same memory from one
+    read to the next instead of mapping, and faulting in, fresh pages each time),
+    above it in place (``realloc``: no second copy).
+    """
+    buf: np.ndarray | None = None
+    cap = n = 0
+    group: list[Any] = []
+    pending = 0
+    while True:
+        batch = _next_batch(p, reader)
+        if batch is not None:
+            m = len(batch)
+            if m == 0:
+                continue
+            group.append(batch)
+            pending += m
+            if pending < _GROUP_EVENTS:
+                continue
+        if group:
+            if buf is None:
+                cap = pending if batch is None else max(
+                    min(p.stat().st_size // 2, _MAX_INITIAL_EVENTS), 2 * pending)
+                buf = np.empty(cap, dtype=EVENT_DTYPE)
+            elif n + pending > cap:
+                cap = max(2 * cap, n + pending)
+                buf.resize(cap, refcheck=False)  # the only reference is ours
+            n = _convert_group(p, group, buf, n, width, height)
+            group, pending = [], 0
+        if batch is None:
+            break
+    if buf is None:
+        return np.empty(0, dtype=EVENT_DTYPE)
     if n == cap:
         return buf
     if n * EVENT_DTYPE.itemsize > _COPY_TRIM_BYTES:
@@ -321,7 +353,7 @@ def read_aedat(path: str | os.PathLike[str]) -> Recording:
 
     An event outside the resolution raises ``ValueError`` naming the file, the event
     and the bound."""
-    p = _require_file(path)
+    p = Path(path)  # checked by _open when dv cannot open it
     reader = _open(p)
     width, height = _geometry(p, reader)
     triggers, counts = _read_triggers(p, reader)
@@ -330,5 +362,6 @@ def read_aedat(path: str | os.PathLike[str]) -> Recording:
     logger.info("%s: AEDAT 4.0 from %s, %dx%d, %d events, %d external trigger edges "
                 "(%d trigger records)", p, meta["camera"], width, height, events.size,
                 triggers.size, sum(counts.values()))
-    return _recording(str(p), events=events, width=width, height=height,
-                      triggers=triggers, metadata=meta)
+    # _convert_dv checked every pixel and wrote every polarity as +-1.
+    return Recording.from_checked(events=events, width=width, height=height,
+                                  triggers=triggers, metadata=meta)

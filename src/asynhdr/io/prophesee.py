@@ -50,9 +50,9 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any, BinaryIO
 
-import numba
 import numpy as np
 
+from asynhdr import _pool
 from asynhdr._atomic import atomic_path
 from asynhdr.events import (
     EVENT_DTYPE,
@@ -557,37 +557,15 @@ def _trim(arr: np.ndarray, n: int) -> np.ndarray:
 # reported (the first in the stream) equal the sequential decoder's exactly.
 
 _NO_TRIGGER_INDEX = np.empty(0, dtype=np.int64)
-_pool_lock = threading.Lock()
-_pool: ThreadPoolExecutor | None = None
-_pool_pid = -1
 
 
 def _decode_threads() -> int:
     """Threads that decode in parallel: numba's thread count (``NUMBA_NUM_THREADS``)."""
-    return max(1, int(getattr(numba.config, "NUMBA_NUM_THREADS", 1)))
-
-
-def _forget_pool() -> None:
-    """In a forked child: the parent's threads are gone; start afresh on first use."""
-    global _pool, _pool_lock
-    _pool = None
-    _pool_lock = threading.Lock()
-
-
-if hasattr(os, "register_at_fork"):
-    os.register_at_fork(after_in_child=_forget_pool)
+    return _pool.worker_threads()
 
 
 def _executor() -> ThreadPoolExecutor:
-    """The module's worker threads (one fewer than :func:`_decode_threads`), one pool a process."""
-    global _pool, _pool_pid
-    with _pool_lock:
-        if _pool is None or _pool_pid != os.getpid():
-            _pool = ThreadPoolExecutor(
-                max_workers=max(1, _decode_threads() - 1), thread_name_prefix="asynhdr-evt3"
-            )
-            _pool_pid = os.getpid()
-        return _pool
+    return _pool.executor()
 
 
 def _evt3_split(n_words: int) -> list[int] | None:
@@ -999,7 +977,8 @@ def read_raw(
         triggers.shape[0],
     )
     metadata = {"format": info.format, "source": str(path), "header": dict(info.fields)}
-    return Recording(
+    # The kernels check every pixel against the geometry and write polarity as +-1.
+    return Recording.from_checked(
         events=events,
         width=info.width,
         height=info.height,
