@@ -54,6 +54,7 @@ import numpy as np
 
 from asynhdr import _pool
 from asynhdr._atomic import atomic_path
+from asynhdr._recycle import Recycler
 from asynhdr.events import (
     EVENT_DTYPE,
     TRIGGER_DTYPE,
@@ -99,7 +100,7 @@ _DEFAULT_BLOCK_BYTES = 1 << 22
 
 # EVT 3.0 payloads (read_raw) and blocks (iter_raw) of at least this many words are
 # decoded in parallel, in parts of at least _PARALLEL_MIN_PART_WORDS words each.
-_PARALLEL_MIN_WORDS = 1 << 17
+_PARALLEL_MIN_WORDS = 1 << 19
 _PARALLEL_MIN_PART_WORDS = 1 << 15
 # Parts per thread: the threads take parts in turn, so that a thread slowed down by
 # other work on the machine holds back only a small part.
@@ -1018,19 +1019,26 @@ def iter_raw(
     return _iter_chunks(info, chunk_events, int(block_bytes))
 
 
+# Chunks iter_raw yields, and its read blocks: reused once the caller lets go of them
+# (memory written before costs no page faults to write again).
+_CHUNKS = Recycler(keep=4, max_bytes=16 << 20)
+_BLOCKS = Recycler(keep=2, max_bytes=_DEFAULT_BLOCK_BYTES)
+_BYTE = np.dtype(np.uint8)
+
+
 def _iter_chunks(
     info: _RawInfo, chunk_events: int, block_bytes: int
 ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     ws = info.word_bytes
     state = _new_state(info.format)
     ev_cap = chunk_events + _SPARE_EVENTS[info.format]
-    events = np.empty(ev_cap, dtype=EVENT_DTYPE)
+    events = _CHUNKS.get(ev_cap, EVENT_DTYPE)
     triggers = np.empty(64, dtype=TRIGGER_DTYPE)
     n_ev = n_tr = 0
     yielded = False
     payload_left = info.n_words * ws
     # No larger than the payload, and not zero-filled: every byte is read before use.
-    block_array = np.empty(max(8, min(block_bytes, payload_left)), dtype=np.uint8)
+    block_array = _BLOCKS.get(max(8, min(block_bytes, payload_left)), _BYTE)
     block_view = block_array.data
     words_before = 0  # words of the payload decoded before this block
     with open(info.path, "rb") as f:
@@ -1068,13 +1076,13 @@ def _iter_chunks(
                 gather = _Gather([(events, 0, n_ev), *dec.pieces])
                 try:
                     for c in range(n_full):
-                        out = np.empty(chunk_events, dtype=EVENT_DTYPE)
+                        out = _CHUNKS.get(ev_cap, EVENT_DTYPE)
                         gather.take(out, chunk_events)
-                        yield out, all_tr[cuts[c] : cuts[c + 1]].copy()
+                        yield out[:chunk_events], all_tr[cuts[c] : cuts[c + 1]].copy()
                         yielded = True
                         del out
                     n_ev = n_all - n_full * chunk_events
-                    events = np.empty(ev_cap, dtype=EVENT_DTYPE)
+                    events = _CHUNKS.get(ev_cap, EVENT_DTYPE)
                     gather.take(events, n_ev)
                 finally:  # the chunks are copies: scratch is free again
                     _give_scratch(scratch)
@@ -1097,7 +1105,7 @@ def _iter_chunks(
                     _raise_decode_error(info, status, words_before + pos, state)
                 if n_ev >= chunk_events:
                     out = events[:chunk_events]
-                    nxt = np.empty(ev_cap, dtype=EVENT_DTYPE)
+                    nxt = _CHUNKS.get(ev_cap, EVENT_DTYPE)
                     rest = n_ev - chunk_events
                     nxt[:rest] = events[chunk_events:n_ev]
                     yield out, triggers[:n_tr].copy()
@@ -1111,7 +1119,7 @@ def _iter_chunks(
         yield events[:chunk_events], triggers[:n_tr].copy()
         yielded = True
         rest = n_ev - chunk_events
-        nxt = np.empty(ev_cap, dtype=EVENT_DTYPE)
+        nxt = _CHUNKS.get(ev_cap, EVENT_DTYPE)
         nxt[:rest] = events[chunk_events:n_ev]
         events, n_ev, n_tr = nxt, rest, 0
     if n_ev or n_tr or not yielded:
