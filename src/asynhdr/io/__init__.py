@@ -221,7 +221,7 @@ def _pair_triggers(
     prev: np.ndarray | None = None
     for ev in chunks:
         if prev is not None:
-            if prev.size:
+            if prev.size and pos < tt.shape[0]:  # no triggers left: no need to look
                 c = int(prev["t"].max())
                 cut = c if cut is None else max(cut, c)
             j = pos if cut is None else max(pos, int(np.searchsorted(tt, cut, side="right")))
