@@ -1,10 +1,12 @@
 """Decoding speed of the Prophesee .raw codec, beside faery measured in the same run.
 
 1. Every real ``.raw`` file of the data folder, each figure the median of
-   ``--runs`` runs after one warm-up: ``read_raw`` events/s (one Recording) and
-   ``iter_raw`` events/s (65,536-event chunks, counted), beside faery's EVT
-   decoder on the same file, its packets counted (like ``iter_raw``) and joined
-   into one array (like ``read_raw``), with the like-for-like ratios.
+   ``--runs`` rounds after one warm-up (in a round, each reader runs once, in
+   turn): ``read_raw`` events/s (one Recording) and ``iter_raw`` events/s
+   (65,536-event chunks, counted), beside faery's EVT decoder on the same file,
+   its packets counted (like ``iter_raw``) and joined into one array (like
+   ``read_raw``), with the like-for-like ratios, per file and for all the files
+   of a format together (total events over total time).
 2. A synthetic EVT 3.0 file of ``--big-gb`` GB written by ``Evt3Writer`` in
    chunks into a temporary folder, read back with ``iter_raw``: write and read
    events/s and the peak resident memory while streaming (sampled every 5 ms),
@@ -102,48 +104,75 @@ def _stream_count(path: Path) -> int:
     return n
 
 
-def _median_time(fn: Any, runs: int) -> tuple[float, Any]:
-    fn()  # warm-up: JIT cache load, file cache
-    times = []
-    result = None
+def _median_times(fns: dict[str, Any], runs: int) -> tuple[dict[str, float], dict[str, Any]]:
+    """Median seconds of each function over ``runs`` rounds, one call of each per round
+    in turn (a machine that slows down slows all of them alike), after one warm-up
+    call each (JIT cache load, file cache); also each function's last result."""
+    results = {k: fn() for k, fn in fns.items()}
+    times: dict[str, list[float]] = {k: [] for k in fns}
     for _ in range(runs):
-        t0 = time.perf_counter()
-        result = fn()
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times)), result
+        for k, fn in fns.items():
+            t0 = time.perf_counter()
+            results[k] = fn()
+            times[k].append(time.perf_counter() - t0)
+    return {k: float(np.median(v)) for k, v in times.items()}, results
 
 
 def bench_real_files(data: Path, runs: int) -> list[dict[str, Any]]:
     rows = []
     for path in sorted((data / "events").glob("*.raw")):
         info = pr.raw_info(path)
-        t_ours, rec = _median_time(lambda p=path: pr.read_raw(p), runs)
-        t_stream, n_stream = _median_time(lambda p=path: _stream_count(p), runs)
-        n = int(rec.events.shape[0])
+        fns: dict[str, Any] = {
+            "ours": lambda p=path: pr.read_raw(p).events.shape[0],
+            "stream": lambda p=path: _stream_count(p),
+        }
+        if info["format"] in ("evt2", "evt3"):
+            dims = (info["width"], info["height"])
+            fns["faery"] = lambda p=path, d=dims: _faery_decode(p, d, False)
+            fns["joined"] = lambda p=path, d=dims: _faery_decode(p, d, True)
+        t, res = _median_times(fns, runs)
+        n = int(res["ours"])
         row: dict[str, Any] = {
             "file": path.name,
             "format": info["format"],
             "events": n,
-            "ours_s": t_ours,
-            "ours_mev_s": n / t_ours / 1e6,
-            "ours_stream_s": t_stream,
-            "ours_stream_mev_s": n_stream / t_stream / 1e6,
+            "ours_s": t["ours"],
+            "ours_mev_s": n / t["ours"] / 1e6,
+            "ours_stream_s": t["stream"],
+            "ours_stream_mev_s": res["stream"] / t["stream"] / 1e6,
         }
-        if info["format"] in ("evt2", "evt3"):
-            dims = (info["width"], info["height"])
-            t_f, n_f = _median_time(lambda p=path, d=dims: _faery_decode(p, d, False), runs)
-            t_j, n_j = _median_time(lambda p=path, d=dims: _faery_decode(p, d, True), runs)
+        if "faery" in t:
             row.update(
-                faery_s=t_f,
-                faery_events=n_f,
-                faery_mev_s=n_f / t_f / 1e6,
-                ratio_stream_vs_faery=(n_stream / t_stream) / (n_f / t_f),
-                faery_joined_s=t_j,
-                faery_joined_mev_s=n_j / t_j / 1e6,
-                ratio_vs_faery_joined=(n / t_ours) / (n_j / t_j),
+                faery_s=t["faery"],
+                faery_events=res["faery"],
+                faery_mev_s=res["faery"] / t["faery"] / 1e6,
+                ratio_stream_vs_faery=(res["stream"] / t["stream"])
+                / (res["faery"] / t["faery"]),
+                faery_joined_s=t["joined"],
+                faery_joined_mev_s=res["joined"] / t["joined"] / 1e6,
+                ratio_vs_faery_joined=(n / t["ours"]) / (res["joined"] / t["joined"]),
             )
         rows.append(row)
     return rows
+
+
+def _totals(rows: list[dict[str, Any]], fmt: str) -> dict[str, float] | None:
+    """Every file of one format together: total events over total time."""
+    sel = [r for r in rows if r["format"] == fmt and "faery_s" in r]
+    if not sel:
+        return None
+    n = sum(r["events"] for r in sel)
+    return {
+        "files": len(sel),
+        "events": n,
+        "stream_mev_s": n / sum(r["ours_stream_s"] for r in sel) / 1e6,
+        "faery_mev_s": n / sum(r["faery_s"] for r in sel) / 1e6,
+        "ratio_stream_vs_faery": sum(r["faery_s"] for r in sel)
+        / sum(r["ours_stream_s"] for r in sel),
+        "read_raw_mev_s": n / sum(r["ours_s"] for r in sel) / 1e6,
+        "ratio_vs_faery_joined": sum(r["faery_joined_s"] for r in sel)
+        / sum(r["ours_s"] for r in sel),
+    }
 
 
 def _synthetic_chunk(
@@ -241,6 +270,13 @@ def _print_table(rows: list[dict[str, Any]], big: dict[str, Any] | None) -> None
             f = f"{'-':>7} {'-':>12} {'-':>7} {'-':>15}"
         print(f"{r['file']:<26} {r['format']:<5} {r['events']:>8} {r['ours_mev_s']:8.1f} "
               f"{r['ours_stream_mev_s']:7.1f} {f}")
+    for fmt in ("evt2", "evt3"):
+        tot = _totals(rows, fmt)
+        if tot is not None:
+            print(f"{'all ' + fmt + ' files':<26} {fmt:<5} {tot['events']:>8} "
+                  f"{tot['read_raw_mev_s']:8.1f} {tot['stream_mev_s']:7.1f} "
+                  f"{tot['faery_mev_s']:7.1f} {tot['ratio_stream_vs_faery']:12.2f} "
+                  f"{'':>7} {tot['ratio_vs_faery_joined']:15.2f}")
     if big is not None:
         print(
             f"synthetic EVT3 {big['file_bytes'] / 1e9:.2f} GB, {big['events']:,} events, "
@@ -264,7 +300,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                         help="size of the synthetic EVT 3.0 file in GB (0 to skip)")
     parser.add_argument("--out", type=Path, default=Path("out") / "bench",
                         help="folder for bench_decode.json")
-    parser.add_argument("--runs", type=int, default=5, help="timed runs per file")
+    parser.add_argument("--runs", type=int, default=15, help="timed rounds per file")
     parser.add_argument("--chunk-events", type=int, default=1_000_000,
                         help="iter_raw chunk size for the synthetic file")
     parser.add_argument("--tmp", default=None, help="folder for the synthetic file")
@@ -285,6 +321,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "runs": args.runs,
         "cpu_count": os.cpu_count(),
         "files": rows,
+        "totals": {fmt: _totals(rows, fmt) for fmt in ("evt2", "evt3")},
         "synthetic": big,
     }
     args.out.mkdir(parents=True, exist_ok=True)

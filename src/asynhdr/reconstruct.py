@@ -51,7 +51,8 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable
+import os
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -63,13 +64,17 @@ from asynhdr.rig import Rig
 
 if TYPE_CHECKING:
     from asynhdr.calibrate import CMap
+    from asynhdr.segment import Cycles
 
 __all__ = [
     "METHODS",
     "WEIGHTINGS",
     "CycleWindows",
+    "FileReconstruction",
     "first_on_phase",
+    "plan_windows",
     "reconstruct",
+    "reconstruct_file",
     "weight",
     "weighted_sums",
     "windows_for",
@@ -280,7 +285,11 @@ def first_on_phase(rec: Recording, windows: CycleWindows) -> np.ndarray:
 
 def rig_of(rec: Recording) -> Rig | None:
     """The rig a simulated recording was made with, from its metadata."""
-    d = rec.metadata.get("rig")
+    return _rig_from(rec.metadata)
+
+
+def _rig_from(metadata: dict[str, Any]) -> Rig | None:
+    d = metadata.get("rig")
     return Rig.from_metadata(d) if isinstance(d, dict) else None
 
 
@@ -305,11 +314,10 @@ def windows_for(
     With ``single`` the whole recording is one cycle starting at its first event (a
     single ramp, as in temporal-mapping captures).
 
-    The window defaults to the rig's ramp (simulated recordings) or the median trigger
-    period. Without triggers, a simulated recording's metadata gives the cycle starts;
-    other recordings need ``asynhdr.segment.cycles_from_events`` first.
+    Otherwise as :func:`plan_windows`, the cycles coming, when there are neither
+    triggers nor a simulated rig, from the event rate
+    (:func:`asynhdr.segment.cycles_from_events`).
     """
-    rig = rig_of(rec)
     if single:
         if rec.events.size == 0:
             raise ValueError("recording has no events: nothing to reconstruct")
@@ -317,29 +325,55 @@ def windows_for(
         t0 = int(t.min())
         span = float(int(t.max()) - t0 + 1)
         return CycleWindows(np.array([t0]), float(window_us or span))
-    trig = rec.triggers
-    rising = trig["t"][trig["rising"]] if trig.size else np.zeros(0, np.int64)
+
+    def from_rate(period: float | None) -> Cycles:
+        from asynhdr.segment import cycles_from_events
+
+        return cycles_from_events(_sorted_events(rec), period_us=period)
+
+    return plan_windows(rec.triggers, rec.metadata, from_rate, window_us=window_us,
+                        period_us=period_us)
+
+
+def plan_windows(
+    triggers: np.ndarray,
+    metadata: dict[str, Any],
+    from_rate: Callable[[float | None], Cycles],
+    *,
+    window_us: float | None = None,
+    period_us: float | None = None,
+) -> CycleWindows:
+    """Integration windows of a recording from what it holds besides its events.
+
+    Cycle starts: the rising trigger edges when there are any
+    (:func:`asynhdr.segment.cycles_from_triggers`), else, for a simulated recording,
+    its rig's cycles (``metadata``), else ``from_rate(period_us)``, the cycles of the
+    event-rate envelope (logged with the confidence). The window defaults to the rig's
+    ramp (simulated recordings) or the period (at most the shortest cycle).
+    """
+    rig = _rig_from(metadata)
+    rising = triggers["t"][triggers["rising"]] if triggers.size else np.zeros(0, np.int64)
     if rising.size:
         from asynhdr.segment import cycles_from_triggers
 
-        cyc = cycles_from_triggers(trig, period_us=period_us or (rig.period_us if rig else None))
+        cyc = cycles_from_triggers(triggers,
+                                   period_us=period_us or (rig.period_us if rig else None))
         starts = np.asarray(cyc.start_us, dtype=np.int64)
         period = float(cyc.period_us)
     elif rig is not None:
-        n = int(rec.metadata.get("n_cycles", 1))
-        starts = rig.cycle_starts_us(n, t0_us=int(rec.metadata.get("t0_us", 0)))
+        n = int(metadata.get("n_cycles", 1))
+        starts = rig.cycle_starts_us(n, t0_us=int(metadata.get("t0_us", 0)))
         period = float(rig.period_us)
     else:
-        from asynhdr.segment import cycles_from_events
-
-        ev = _sorted_events(rec)
-        cyc = cycles_from_events(ev, period_us=period_us)
+        cyc = from_rate(period_us)
         logger.warning("no triggers: cycles from the event rate (period %.1f µs, "
                        "confidence %.2f)", cyc.period_us, cyc.confidence)
         starts = np.asarray(cyc.start_us, dtype=np.int64)
         period = float(cyc.period_us)
     if window_us is None:
         window_us = rig.ramp_us if rig is not None else period
+        if starts.size > 1:  # a fitted period can exceed a cycle by a fraction of a µs
+            window_us = min(float(window_us), float(np.min(np.diff(starts))))
     return CycleWindows(starts, float(window_us))
 
 
@@ -520,3 +554,109 @@ def reconstruct(
                          f"({rec.height}, {rec.width})")
     kwargs: dict[str, Any] = dict(k=float(k), threshold=c, l_const=lc, cmap=cm, rig=rig)
     return _TABLE[method](rec, windows, **kwargs)
+
+
+class FileReconstruction:
+    """Reconstruct a recording file cycle by cycle, holding one cycle's events at a time.
+
+    Made by :func:`reconstruct_file`. ``windows`` and ``metadata`` are known before the
+    first image; iterating yields ``(cycle, start_us, image)`` with the image exactly as
+    :func:`reconstruct` gives it for that cycle from the whole recording.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], windows: CycleWindows,
+                 metadata: dict[str, Any], width: int, height: int, n_events: int,
+                 options: dict[str, Any], read: dict[str, Any]) -> None:
+        self.path = path
+        self.windows = windows
+        self.metadata = metadata
+        self.width = width
+        self.height = height
+        self.n_events = n_events
+        """Events in the file (all of them, inside the windows or not)."""
+        self._options = options
+        self._read = read
+
+    def __len__(self) -> int:
+        return self.windows.n_cycles
+
+    def __iter__(self) -> Iterator[tuple[int, int, np.ndarray]]:
+        from asynhdr.io.windows import iter_windows
+
+        w = self.windows
+        starts = w.start_us
+        stops = np.ceil(starts + w.window_us).astype(np.int64)  # t < start + window
+        once = _OncePerMessage()  # what holds for every cycle is logged once
+        logger.addFilter(once)
+        try:
+            for win in iter_windows(self.path, starts, stops, **self._read):
+                ev, _ = sort_events(win.events)
+                rec = Recording(events=ev, width=self.width, height=self.height,
+                                triggers=win.triggers, metadata=self.metadata)
+                one = CycleWindows(np.array([win.start_us]), w.window_us)
+                yield win.i, win.start_us, reconstruct(rec, windows=one, **self._options)[0]
+        finally:
+            logger.removeFilter(once)
+
+
+class _OncePerMessage(logging.Filter):
+    """Let each distinct log message through once."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.seen: set[tuple[int, str]] = set()
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        key = (record.levelno, record.getMessage())
+        if key in self.seen:
+            return False
+        self.seen.add(key)
+        return True
+
+
+def reconstruct_file(
+    path: str | os.PathLike[str],
+    *,
+    method: str = "exp",
+    k: float = DEFAULT_K,
+    cmap: CMap | np.ndarray | None = None,
+    window_us: float | None = None,
+    period_us: float | None = None,
+    threshold: float | None = None,
+    l_const: float | None = None,
+    width: int | None = None,
+    height: int | None = None,
+    time_unit: str | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> FileReconstruction:
+    """Plan the reconstruction of a recording file, to run cycle by cycle.
+
+    One streaming pass over the file finds its geometry, triggers and metadata; the
+    cycles come as in :func:`windows_for` (the event-rate case takes two more
+    streaming passes, :func:`asynhdr.segment.cycles_from_file`). Iterating the result
+    reads the file once more, one cycle at a time (memory flat in file size). Arguments
+    as in :func:`reconstruct` and :func:`asynhdr.io.open_recording`; ``progress(n)``
+    is called with the events scanned so far during the first pass.
+    """
+    from asynhdr.io import scan_recording
+    from asynhdr.segment import cycles_from_file
+
+    if method not in _TABLE:
+        raise ValueError(f"unknown method {method!r}; expected one of {list(METHODS)}")
+    read: dict[str, Any] = dict(width=width, height=height, time_unit=time_unit)
+    scan = scan_recording(path, progress=progress, **read)
+    info = scan.info
+    if info["width"] is None or info["height"] is None:
+        raise ValueError(f"{path}: no sensor geometry; give width and height")
+    head_meta = info["header"].get("metadata")
+    metadata = dict(head_meta) if isinstance(head_meta, dict) else {}
+
+    def from_rate(period: float | None) -> Cycles:
+        return cycles_from_file(path, period_us=period, scan=scan, **read)
+
+    windows = plan_windows(scan.triggers, metadata, from_rate, window_us=window_us,
+                           period_us=period_us)
+    options: dict[str, Any] = dict(method=method, k=k, cmap=cmap, threshold=threshold,
+                                   l_const=l_const)
+    return FileReconstruction(path, windows, metadata, int(info["width"]),
+                              int(info["height"]), int(info["events"]), options, read)

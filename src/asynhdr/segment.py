@@ -22,16 +22,22 @@ Public API
 from __future__ import annotations
 
 import logging
+import math
+import os
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from asynhdr.events import sort_events, validate_events, validate_triggers
 
+if TYPE_CHECKING:
+    from asynhdr.io import RecordingScan
+
 __all__ = [
     "Cycles",
     "cycles_from_events",
+    "cycles_from_file",
     "cycles_from_rate",
     "cycles_from_triggers",
     "estimate_period_from_rate",
@@ -673,6 +679,53 @@ def cycles_from_events(
     fine = float(bin_us) if bin_us is not None else max(1.0, p0 / 200.5)
     counts = event_rate(t, bin_us=fine, t0_us=t0)
     return cycles_from_rate(counts, bin_us=fine, t0_us=t0, period_us=p0,
+                            refine_period=period_us is None)
+
+
+def cycles_from_file(
+    path: str | os.PathLike[str],
+    *,
+    period_us: float | None = None,
+    period_range_us: tuple[float, float] = DEFAULT_PERIOD_RANGE_US,
+    bin_us: float | None = None,
+    width: int | None = None,
+    height: int | None = None,
+    time_unit: str | None = None,
+    scan: RecordingScan | None = None,
+) -> Cycles:
+    """Cycles of a recording file, without holding its events: from its rising trigger
+    edges (:func:`cycles_from_triggers`) when it has any, else from its event rate, the
+    same as :func:`cycles_from_events` on the whole recording (same bins, same result)
+    from histograms filled in streaming passes over the file.
+
+    ``scan``: the file's :func:`asynhdr.io.scan_recording`, when already done (else one
+    more pass). ``width``, ``height``, ``time_unit`` as in
+    :func:`asynhdr.io.open_recording`.
+    """
+    from asynhdr.io import scan_recording
+    from asynhdr.io.windows import rate_histogram
+
+    if scan is None:
+        scan = scan_recording(path, width=width, height=height, time_unit=time_unit)
+    tr = scan.triggers
+    if tr.size and tr["rising"].any():
+        return cycles_from_triggers(tr, period_us=period_us)
+    if not scan.info["events"]:
+        raise ValueError(f"{path}: no events and no triggers: no cycles to find")
+    t0 = int(scan.info["min_t_us"])
+    span = int(scan.info["max_t_us"]) - t0 + 1
+
+    def histogram(b: float) -> np.ndarray:
+        return rate_histogram(path, bin_us=b, t0_us=t0, n_bins=math.floor((span - 1) / b) + 1,
+                              width=width, height=height, time_unit=time_unit)
+
+    p0 = period_us
+    if p0 is None:
+        coarse = max(1.0, float(period_range_us[0]) / 20.0, span / float(1 << 23))
+        p0, _ = estimate_period_from_rate(histogram(coarse), bin_us=coarse,
+                                          period_range_us=period_range_us)
+    fine = float(bin_us) if bin_us is not None else max(1.0, p0 / 200.5)
+    return cycles_from_rate(histogram(fine), bin_us=fine, t0_us=t0, period_us=p0,
                             refine_period=period_us is None)
 
 

@@ -309,6 +309,8 @@ def reconstruct(
                                            "recording's sensor, else 0.2)."),
     window_us: float | None = typer.Option(None, help="Integration window after each cycle "
                                            "start (default: the ramp, else the period)."),
+    period_us: float | None = typer.Option(None, help="Modulation period in µs, when known "
+                                           "(needed with fewer than two trigger edges)."),
     single: bool = typer.Option(False, "--single", help="Treat the whole recording as one "
                                 "cycle (a single ramp, e.g. a temporal-mapping capture)."),
     width: int | None = typer.Option(None, help="Sensor width, for files without geometry."),
@@ -316,33 +318,56 @@ def reconstruct(
     formats: str = typer.Option("exr,png", help=f"Comma-separated, from {IMAGE_FORMATS}."),
     tonemap: str = typer.Option("log", help="PNG tone mapping: log | reinhard | linear."),
 ) -> None:
-    """Reconstruct one HDR image per modulation cycle."""
-    from asynhdr.io import open_recording
+    """Reconstruct one HDR image per modulation cycle.
+
+    The file is read cycle by cycle (memory flat in file size) after one pass that
+    finds its cycles; with --single it is read whole.
+    """
     from asynhdr.io.cmap import load_cmap
     from asynhdr.io.images import write_image
-    from asynhdr.reconstruct import reconstruct as run
-    from asynhdr.reconstruct import windows_for
 
     fmts = _parse_formats(formats)
+    meta: dict[str, Any] = {"source": str(recording), "method": method, "k": k,
+                            "cmap": str(cmap) if cmap else None,
+                            "radiometric": method in ("ttfe", "invert")}
+
+    def write(i: int, img: np.ndarray, unit: str) -> None:
+        stem = out / f"{recording.stem}_{method}_{i:04d}"
+        for f in fmts:
+            if f == "png":
+                write_image(stem.with_suffix(".png"), img, tonemap=tonemap)
+            else:
+                write_image(stem.with_suffix("." + f), img,
+                            metadata=dict(meta, cycle=i, unit=unit)
+                            if f in ("exr", "tif") else None)
+
     try:
-        rec = open_recording(recording, width=width, height=height)
         cm = load_cmap(cmap) if cmap is not None else None
-        windows = windows_for(rec, window_us=window_us, single=single)
-        imgs = run(rec, method=method, k=k, cmap=cm, windows=windows, threshold=threshold)
+        if single:
+            from asynhdr.io import open_recording
+            from asynhdr.reconstruct import reconstruct as run
+            from asynhdr.reconstruct import windows_for
+
+            rec = open_recording(recording, width=width, height=height)
+            windows = windows_for(rec, window_us=window_us, single=True)
+            img = run(rec, method=method, k=k, cmap=cm, windows=windows,
+                      threshold=threshold)[0]
+            write(0, img, rec.metadata.get("radiance_unit", "relative"))
+            console.print(f"1 image ({method}) from {rec.events.size:,} events -> {out}/")
+            return
+        from asynhdr.reconstruct import reconstruct_file
+
+        with progress_bar() as update:
+            plan = reconstruct_file(recording, method=method, k=k, cmap=cm,
+                                    window_us=window_us, period_us=period_us,
+                                    threshold=threshold, width=width, height=height,
+                                    progress=lambda n: update("scan (events)", n, n))
+            unit = plan.metadata.get("radiance_unit", "relative")
+            for i, _, img in plan:
+                write(i, img, unit)
+                update("reconstruct (cycles)", i + 1, len(plan))
     except (ValueError, FileNotFoundError) as exc:
         fail(str(exc))
-    meta = {"source": str(recording), "method": method, "k": k,
-            "cmap": str(cmap) if cmap else None,
-            "radiometric": method in ("ttfe", "invert"),
-            "unit": rec.metadata.get("radiance_unit", "relative")}
-    with progress_bar() as update:
-        for i, img in enumerate(imgs):
-            stem = out / f"{recording.stem}_{method}_{i:04d}"
-            for f in fmts:
-                if f == "png":
-                    write_image(stem.with_suffix(".png"), img, tonemap=tonemap)
-                else:
-                    write_image(stem.with_suffix("." + f), img,
-                                metadata=dict(meta, cycle=i) if f in ("exr", "tif") else None)
-            update("write images", i + 1, len(imgs))
-    console.print(f"{len(imgs)} images ({method}) from {rec.events.size:,} events -> {out}/")
+    console.print(f"{len(plan)} image{'s' if len(plan) != 1 else ''} ({method}) from "
+                  f"{plan.n_events:,} events, one cycle "
+                  f"at a time -> {out}/")
