@@ -9,8 +9,10 @@
    of a format together (total events over total time).
 2. A synthetic EVT 3.0 file of ``--big-gb`` GB written by ``Evt3Writer`` in
    chunks into a temporary folder, read back with ``iter_raw``: write and read
-   events/s and the peak resident memory while streaming (sampled every 5 ms),
-   then deleted.
+   events/s and the peak resident memory while streaming (sampled every 5 ms);
+   then reconstructed cycle by cycle (``reconstruct_file``, exp weighting, one
+   image per 50 ms cycle, discarded) with its time and peak resident memory; then
+   deleted.
 
 Prints a compact table and writes ``bench_decode.json`` to ``--out``.
 
@@ -195,7 +197,8 @@ def _synthetic_chunk(
 
 
 def bench_big_file(
-    big_gb: float, tmp_root: str | None, chunk_events: int, seed: int
+    big_gb: float, tmp_root: str | None, chunk_events: int, seed: int,
+    reconstruct: bool = True,
 ) -> dict[str, Any]:
     width, height = 1280, 720
     target = int(big_gb * 1e9)
@@ -236,6 +239,9 @@ def bench_big_file(
                 n_read += events.shape[0]
                 n_trig_read += triggers.shape[0]
         t_read = time.perf_counter() - t0
+        rec: dict[str, Any] = {}
+        if reconstruct:
+            rec = _bench_reconstruct_file(path)
     if n_read != n_written or n_trig_read != n_trig:
         raise RuntimeError(
             f"read back {n_read} events / {n_trig_read} triggers, wrote {n_written} / {n_trig}"
@@ -254,6 +260,30 @@ def bench_big_file(
         "rss_before_read_mb": rss_before / 1e6,
         "peak_rss_during_read_mb": sampler.peak / 1e6,
         "process_max_rss_mb": _max_rss_bytes() / 1e6,
+        **rec,
+    }
+
+
+def _bench_reconstruct_file(path: Path) -> dict[str, Any]:
+    """``reconstruct_file`` (exp weighting) over every cycle of the file: one image per
+    cycle, discarded; time and peak resident memory while it runs."""
+    from asynhdr.reconstruct import reconstruct_file
+
+    rss_before = _rss_bytes()
+    t0 = time.perf_counter()
+    with _RssSampler() as sampler:
+        plan = reconstruct_file(path, method="exp")
+        t_plan = time.perf_counter() - t0
+        n_img = sum(1 for _ in plan)
+    t_all = time.perf_counter() - t0
+    return {
+        "reconstruct_cycles": n_img,
+        "reconstruct_plan_s": t_plan,
+        "reconstruct_total_s": t_all,
+        "reconstruct_cycles_per_s": n_img / (t_all - t_plan),
+        "reconstruct_mev_s": plan.n_events / t_all / 1e6,
+        "rss_before_reconstruct_mb": rss_before / 1e6,
+        "peak_rss_during_reconstruct_mb": sampler.peak / 1e6,
     }
 
 
@@ -290,6 +320,16 @@ def _print_table(rows: list[dict[str, Any]], big: dict[str, Any] | None) -> None
             f"(chunk_events={big['chunk_events']:,}); process peak "
             f"{big['process_max_rss_mb']:.0f} MB"
         )
+        if "reconstruct_cycles" in big:
+            print(
+                f"reconstruct_file (exp), cycle by cycle: {big['reconstruct_cycles']:,} "
+                f"images of 1280x720 in {big['reconstruct_total_s']:.1f} s (plan "
+                f"{big['reconstruct_plan_s']:.1f} s, then "
+                f"{big['reconstruct_cycles_per_s']:.1f} cycles/s; "
+                f"{big['reconstruct_mev_s']:.1f} M events/s overall); resident memory "
+                f"{big['rss_before_reconstruct_mb']:.0f} MB before, peak "
+                f"{big['peak_rss_during_reconstruct_mb']:.0f} MB"
+            )
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
@@ -305,6 +345,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                         help="iter_raw chunk size for the synthetic file")
     parser.add_argument("--tmp", default=None, help="folder for the synthetic file")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--no-reconstruct", action="store_true",
+                        help="skip reconstructing the synthetic file cycle by cycle")
     args = parser.parse_args(argv)
 
     rows = bench_real_files(args.data, args.runs) if (args.data / "events").is_dir() else []
@@ -312,7 +354,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         print(f"no .raw files under {args.data / 'events'}; real-file figures skipped",
               file=sys.stderr)
     big = (
-        bench_big_file(args.big_gb, args.tmp, args.chunk_events, args.seed)
+        bench_big_file(args.big_gb, args.tmp, args.chunk_events, args.seed,
+                       reconstruct=not args.no_reconstruct)
         if args.big_gb > 0
         else None
     )
