@@ -317,8 +317,8 @@ def _print_table(rows: list[dict[str, Any]], big: dict[str, Any] | None) -> None
         print(
             f"resident memory: {big['rss_before_read_mb']:.0f} MB before reading, peak "
             f"{big['peak_rss_during_read_mb']:.0f} MB while streaming "
-            f"(chunk_events={big['chunk_events']:,}); process peak "
-            f"{big['process_max_rss_mb']:.0f} MB"
+            f"(chunk_events={big['chunk_events']:,}); peak of the whole process so far "
+            f"{big['process_max_rss_mb']:.0f} MB (earlier benchmarks in the run included)"
         )
         if "reconstruct_cycles" in big:
             print(
