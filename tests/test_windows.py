@@ -147,3 +147,20 @@ def test_iter_windows_reads_a_file(tmp_path: Path, simulated: Recording) -> None
             w.events, simulated.events[(t >= starts[w.i]) & (t < stops[w.i])])
         assert w.triggers["t"].tolist() == [s for s in (0, 50_000, 100_000, 150_000)
                                             if starts[w.i] <= s < stops[w.i]]
+
+
+def test_an_unmodulated_file_is_refused_not_cut_at_random(tmp_path: Path) -> None:
+    """No triggers and no periodic bursts: an error that says so and what to give,
+    instead of images cut at a guessed period."""
+    rng = np.random.default_rng(2)
+    n = 40_000
+    ev = make_events(rng.integers(0, 32, n), rng.integers(0, 24, n),
+                     rng.choice(np.array([-1, 1], np.int8), n),
+                     np.sort(rng.integers(0, 2_000_000, n)))
+    path = tmp_path / "steady.h5"
+    write_recording(path, Recording(ev, 32, 24))
+    with pytest.raises(ValueError, match=r"no periodic bursts .* confidence 0\.\d\d < 0\.2.*"
+                                         r"--period-us"):
+        reconstruct_file(path)
+    with pytest.raises(ValueError, match=r"not be modulated; treat it as one ramp"):
+        reconstruct_file(path, period_us=50_000)

@@ -365,7 +365,17 @@ def plan_windows(
         starts = rig.cycle_starts_us(n, t0_us=int(metadata.get("t0_us", 0)))
         period = float(rig.period_us)
     else:
+        from asynhdr.segment import MIN_RATE_CONFIDENCE
+
         cyc = from_rate(period_us)
+        if cyc.confidence < MIN_RATE_CONFIDENCE:
+            hint = ("treat it as one ramp (--single)" if period_us is not None else
+                    "give the period (period_us, --period-us) or treat it as one ramp "
+                    "(--single)")
+            raise ValueError(
+                f"no trigger edges, and no periodic bursts in the event rate (best guess: "
+                f"period {cyc.period_us:.1f} µs, confidence {cyc.confidence:.2f} < "
+                f"{MIN_RATE_CONFIDENCE}): the recording may not be modulated; {hint}")
         logger.warning("no triggers: cycles from the event rate (period %.1f µs, "
                        "confidence %.2f)", cyc.period_us, cyc.confidence)
         starts = np.asarray(cyc.start_us, dtype=np.int64)

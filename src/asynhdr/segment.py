@@ -35,6 +35,7 @@ if TYPE_CHECKING:
     from asynhdr.io import RecordingScan
 
 __all__ = [
+    "MIN_RATE_CONFIDENCE",
     "Cycles",
     "cycles_from_events",
     "cycles_from_file",
@@ -49,6 +50,10 @@ logger = logging.getLogger(__name__)
 
 SOURCES = ("triggers", "event_rate")
 """Where cycle starts can come from."""
+
+MIN_RATE_CONFIDENCE = 0.2
+"""Cycles found from the event rate with a lower confidence are not used: the
+recording shows no periodic bursts (it may not be modulated)."""
 
 DEFAULT_PERIOD_RANGE_US = (1_000, 1_000_000)
 """Period search range (µs) of :func:`cycles_from_events` when none is given: 1 ms to 1 s."""

@@ -16,7 +16,7 @@ from rich.table import Table
 from asynhdr._atomic import atomic_path
 from asynhdr.cli import app
 from asynhdr.io import RecordingScan, scan_recording
-from asynhdr.segment import Cycles, cycles_from_rate, cycles_from_triggers
+from asynhdr.segment import MIN_RATE_CONFIDENCE, Cycles, cycles_from_rate, cycles_from_triggers
 
 __all__ = ["detect_cycles", "info", "save_rate_plot"]
 
@@ -25,7 +25,7 @@ logger = logging.getLogger(__name__)
 RATE_BIN_US = 100
 """Bin width (µs) of the event-rate histogram used to find cycles without triggers."""
 
-MIN_CONFIDENCE = 0.2
+MIN_CONFIDENCE = MIN_RATE_CONFIDENCE
 """Cycles found from the event rate with a lower confidence are not reported."""
 
 
