@@ -684,6 +684,94 @@ def test_readers_on_truncated_or_flipped_files(fuzz_dir: Path, ext: str, cut: fl
         assert path.name in str(exc), str(exc)
 
 
+def _aedat4_template(folder: Path) -> bytes:
+    """An LZ4 AEDAT 4.0 file written by dv-processing: 12 packets of events, triggers."""
+    if ".aedat4" not in _TEMPLATES:
+        dv = pytest.importorskip("dv_processing")
+        path = folder / "template.aedat4"
+        cfg = dv.io.MonoCameraWriter.Config("TESTCAM")
+        cfg.compression = dv.CompressionType.LZ4
+        cfg.addEventStream((64, 48))
+        cfg.addTriggerStream()
+        writer = dv.io.MonoCameraWriter(str(path), cfg)
+        rng = np.random.default_rng(4)
+        for k in range(12):
+            store = dv.EventStore()
+            for i in range(400):
+                store.push_back(10_000 + 1_000 * k + i, int(rng.integers(0, 64)),
+                                int(rng.integers(0, 48)), bool(i % 2))
+            writer.writeEvents(store)
+            writer.writeTrigger(dv.Trigger(10_000 + 1_000 * k,
+                                           dv.TriggerType.EXTERNAL_SIGNAL_RISING_EDGE))
+        del writer  # closes the file
+        _TEMPLATES[".aedat4"] = path.read_bytes()
+    return _TEMPLATES[".aedat4"]
+
+
+def _dat_template() -> bytes:
+    if ".dat" not in _TEMPLATES:
+        rng = np.random.default_rng(6)
+        n = 600
+        rec = np.empty(n, dtype=[("t", "<u4"), ("d", "<u4")])
+        rec["t"] = np.sort(rng.integers(0, 200_000, n))
+        rec["d"] = (rng.integers(0, 304, n).astype(np.uint32)
+                    | (rng.integers(0, 240, n).astype(np.uint32) << 14)
+                    | (rng.integers(0, 2, n).astype(np.uint32) << 28))
+        _TEMPLATES[".dat"] = (b"% Version 2\n% Width 304\n% Height 240\n" + bytes([0x0C, 8])
+                              + rec.tobytes())
+    return _TEMPLATES[".dat"]
+
+
+def _damage(data: bytes, cut: float, flips: list[tuple[float, int]]) -> bytes:
+    b = bytearray(data[: max(0, int(len(data) * cut))] if cut < 1.0 else data)
+    for where, value in flips:
+        if b:
+            b[min(int(where * len(b)), len(b) - 1)] ^= value
+    return bytes(b)
+
+
+@_PROPERTY
+@given(cut=st.one_of(st.just(1.0), st.floats(0.0, 1.0)),
+       flips=st.lists(st.tuples(st.floats(0.0, 1.0), st.integers(1, 255)), max_size=4))
+def test_aedat4_and_dat_readers_on_truncated_or_flipped_files(
+        fuzz_dir: Path, cut: float, flips: list[tuple[float, int]]) -> None:
+    """Damaged .aedat4 (LZ4) and .dat files: valid events or a ValueError naming the
+    file. dv-processing never returns from some damaged LZ4 packets; should that happen
+    here, the guard ends the run with a traceback instead of letting it hang."""
+    import faulthandler
+
+    for ext, template in ((".aedat4", _aedat4_template(fuzz_dir)), (".dat", _dat_template())):
+        path = fuzz_dir / f"damaged{ext}"
+        path.write_bytes(_damage(template, cut, flips))
+        faulthandler.dump_traceback_later(60, exit=True)
+        try:
+            _valid_or_named_error(open_recording, path)
+            for reader in (recording_info, lambda q: list(iter_chunks(q, chunk_events=1000))):
+                try:
+                    reader(path)
+                except ValueError as exc:
+                    assert path.name in str(exc), str(exc)
+        finally:
+            faulthandler.cancel_dump_traceback_later()
+
+
+def test_aedat4_damaged_lz4_packet_is_refused_with_its_offset(fuzz_dir: Path) -> None:
+    """A compressed event packet whose block runs past its end (bytes 0xFF: a literal
+    length that never stops) is refused before dv-processing decodes it, naming the
+    packet and the byte."""
+    good = _aedat4_template(fuzz_dir)
+    hsize = int.from_bytes(good[14:18], "little")
+    at = 18 + hsize  # the first packet; its LZ4 frame starts 8 bytes later
+    size = int.from_bytes(good[at + 4: at + 8], "little")
+    b = bytearray(good)
+    b[at + 8 + 20: at + 8 + size - 8] = b"\xff" * (size - 28)
+    path = fuzz_dir / "ff.aedat4"
+    path.write_bytes(bytes(b))
+    with pytest.raises(ValueError, match=rf"ff\.aedat4: packet of stream 0 at byte {at}: "
+                                         r"LZ4 block data that does not decode \(byte \d+\)"):
+        open_recording(path)
+
+
 @_PROPERTY
 @given(data=st.binary(max_size=600))
 def test_binary_readers_on_random_bytes(fuzz_dir: Path, data: bytes) -> None:

@@ -20,6 +20,12 @@ EXTERNAL_GENERATOR_FALLING_EDGE     False        1
 Every record, external or not (APS frame and exposure markers, timestamp resets),
 is counted by type in ``metadata["trigger_records"]``.
 
+Before dv-processing opens a file, :func:`asynhdr.io._aedat_check.check_aedat4` walks
+its container and checks the LZ4 data of the event and trigger packets: dv-processing
+never returns from some damaged LZ4 packets (one flipped byte can do it) and holds the
+GIL meanwhile, so such a file is refused first, with the packet and byte named. The
+check reads the file once more and costs about half of dv-processing's own read.
+
 Each event packet is copied out of dv-processing and converted at once (still in
 cache), in one compiled pass that also checks every pixel against the event stream's
 resolution: an event outside it raises a ``ValueError`` naming the file, the event's
@@ -40,6 +46,7 @@ import numpy as np
 
 from asynhdr.events import EVENT_DTYPE, TRIGGER_DTYPE, Recording, empty_triggers
 from asynhdr.io import _pair_triggers, _require_file
+from asynhdr.io._aedat_check import check_aedat4
 
 __all__ = ["EXTERNAL_TRIGGER_TYPES", "aedat_info", "iter_aedat", "read_aedat"]
 
@@ -75,11 +82,17 @@ def _short(exc: BaseException) -> str:
 
 
 def _open(p: Path) -> Any:
+    """dv-processing's reader, once the container is checked: dv-processing hangs on
+    some damaged LZ4 packets (see :mod:`asynhdr.io._aedat_check`)."""
     dv = _dv()
+    try:
+        check_aedat4(p, types=("EVTS", "TRIG"))
+    except OSError:
+        _require_file(p)  # a missing file or a folder gets its own message
+        raise
     try:
         reader = dv.io.MonoCameraRecording(str(p))
     except Exception as exc:  # dv-processing raises RuntimeError for damaged files
-        _require_file(p)  # a missing file or a folder gets its own message
         raise ValueError(f"{p}: not a readable AEDAT 4.0 file ({_short(exc)})") from exc
     if not reader.isEventStreamAvailable():
         raise ValueError(
@@ -183,6 +196,8 @@ def _read_triggers(p: Path, reader: Any) -> tuple[np.ndarray, dict[str, int]]:
             # indexing: pybind's iterator costs µs per batch
             records.extend((int(r.type), r.timestamp) for r in map(batch.__getitem__,
                                                                     range(len(batch))))
+    except ValueError:
+        raise
     except Exception as exc:
         raise ValueError(f"{p}: damaged trigger stream ({_short(exc)})") from exc
     for code in {c for c, _ in records}:
@@ -353,7 +368,7 @@ def read_aedat(path: str | os.PathLike[str]) -> Recording:
 
     An event outside the resolution raises ``ValueError`` naming the file, the event
     and the bound."""
-    p = Path(path)  # checked by _open when dv cannot open it
+    p = Path(path)
     reader = _open(p)
     width, height = _geometry(p, reader)
     triggers, counts = _read_triggers(p, reader)
