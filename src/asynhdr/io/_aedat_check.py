@@ -23,6 +23,7 @@ byte offset. Memory stays flat: one packet is read at a time.
 from __future__ import annotations
 
 import os
+import re
 import struct
 from pathlib import Path
 from typing import BinaryIO
@@ -84,52 +85,54 @@ def _xxh32_short(buf, start, n):  # pragma: no cover - compiled
 @numba.njit(cache=True, nogil=True)
 def _lz4_block(buf, start, size, block_max, history):  # pragma: no cover - compiled
     """Walk one compressed LZ4 block: (bytes it decodes to, offset of the first bad
-    byte or -1)."""
-    ip = start
-    end = start + size
+    byte or -1).
+
+    The walk follows the sequences (token, literals, 2-byte match offset, match length)
+    and checks what a decoder needs: input within the block, every match offset inside
+    the data decoded so far (``history`` bytes of earlier blocks included), the block
+    ending right after a run of literals, and its decoded size within ``block_max``
+    (checked once at the end: the walk writes nothing). Unsigned indices keep numba's
+    wraparound checks out of the loop.
+    """
+    ip = np.uint64(start)
+    end = np.uint64(start + size)
     op = np.int64(0)
     while True:
         if ip >= end:
-            return op, ip  # a block ends with literals, not a match
+            return op, np.int64(ip)  # a block ends with literals, not a match
         token = np.int64(buf[ip])
-        ip += 1
+        ip += np.uint64(1)
         lit = token >> 4
         if lit == 15:
             while True:
                 if ip >= end:
-                    return op, ip
+                    return op, np.int64(ip)
                 s = np.int64(buf[ip])
-                ip += 1
+                ip += np.uint64(1)
                 lit += s
                 if s != 255:
                     break
-        if ip + lit > end:
-            return op, ip
-        ip += lit
+        ip += np.uint64(lit)
         op += lit
-        if op > block_max:
-            return op, ip
-        if ip == end:
-            return op, -1
-        if ip + 2 > end:
-            return op, ip
-        off = np.int64(buf[ip]) | (np.int64(buf[ip + 1]) << 8)
+        if ip + np.uint64(2) > end:
+            if ip == end and op <= block_max:
+                return op, np.int64(-1)
+            return op, np.int64(min(ip, end))
+        off = np.int64(buf[ip]) | (np.int64(buf[ip + np.uint64(1)]) << 8)
         if off == 0 or off > op + history:
-            return op, ip
-        ip += 2
+            return op, np.int64(ip)
+        ip += np.uint64(2)
         ml = token & 15
         if ml == 15:
             while True:
                 if ip >= end:
-                    return op, ip
+                    return op, np.int64(ip)
                 s = np.int64(buf[ip])
-                ip += 1
+                ip += np.uint64(1)
                 ml += s
                 if s != 255:
                     break
         op += ml + 4
-        if op > block_max:
-            return op, ip
 
 
 @numba.njit(cache=True, nogil=True)
@@ -350,23 +353,18 @@ def check_aedat4(path: str | os.PathLike[str], types: tuple[str, ...] | None = N
                                  "file is damaged")
 
 
-def _stream_types(name: str, header: bytes) -> dict[str, int]:
-    """Stream id of each type identifier (``EVTS``, ``TRIG``, ...) from the header's XML."""
-    import xml.etree.ElementTree as ET
+_OUTPUT_NODE = re.compile(rb'<node name="(\d+)"')
+_TYPE_ATTR = re.compile(rb'key="typeIdentifier" type="string">([^<]+)<')
 
-    start = header.find(b"<dv")
-    stop = header.rfind(b"</dv>")
-    if start < 0 or stop < 0:
-        return {}
-    try:
-        root = ET.fromstring(header[start: stop + 5].decode("utf-8", "replace"))
-    except ET.ParseError:
-        return {}
+
+def _stream_types(name: str, header: bytes) -> dict[str, int]:
+    """Stream id of each type identifier (``EVTS``, ``TRIG``, ...) from the header's XML
+    (each output's ``<node name="ID">`` holds its ``typeIdentifier``)."""
+    nodes = list(_OUTPUT_NODE.finditer(header))
     out: dict[str, int] = {}
-    for node in root.iter("node"):
-        if not node.get("name", "").isdigit():
-            continue
-        for attr in node.findall("attr"):
-            if attr.get("key") == "typeIdentifier" and attr.text:
-                out.setdefault(attr.text.strip(), int(node.get("name", "-1")))
+    for m, nxt in zip(nodes, [*nodes[1:], None], strict=True):
+        segment = header[m.end(): nxt.start() if nxt is not None else len(header)]
+        t = _TYPE_ATTR.search(segment)
+        if t is not None:
+            out.setdefault(t.group(1).decode("ascii", "replace").strip(), int(m.group(1)))
     return out
