@@ -225,8 +225,8 @@ def _packets(buf, n, end):  # pragma: no cover - compiled
     """The packets whose bytes lie wholly in ``buf[:n]`` (file bytes from the first
     packet on; the packets end at ``end``, relative to the same start): their
     positions, sizes and streams, then (status, position of the next packet) with
-    status 0 all packets done, 1 the next packet goes past the buffer (read more), 2 a
-    packet header that does not fit (at the position)."""
+    status 0 all packets done, 1 the next packet goes past the buffer (read more), 2 the
+    next packet's header claims a size that does not fit."""
     pos = np.int64(0)
     cap = 1024
     at = np.empty(cap, dtype=np.int64)
@@ -245,9 +245,8 @@ def _packets(buf, n, end):  # pragma: no cover - compiled
         if sid >= 0x80000000:
             sid -= np.int64(1) << 32
         if m <= 0 or pos + 8 + m > end:
-            status = 2
-            at[0], size[0], stream[0] = pos, m, sid
-            return at[:1], size[:1], stream[:1], status, pos
+            status = 2  # the packets before it are returned; it is at ``pos``
+            break
         if pos + 8 + m > n:
             status = 1
             break
@@ -330,13 +329,17 @@ def check_aedat4(path: str | os.PathLike[str], types: tuple[str, ...] | None = N
                                      f"{_PROBLEMS[int(code[i])]} (byte {a + 8 + int(off[i])}); "
                                      "the file is damaged")
             if status == 2:
-                raise ValueError(f"{name}: packet at byte {pos + int(at[0])} (stream "
-                                 f"{int(stream[0])}) claims {int(n[0])} bytes; the data end "
-                                 f"at byte {end}")
-            if status == 1 and int(nxt) == 0:  # one packet larger than the window
-                f.seek(pos + 4)
-                (m,) = struct.unpack("<i", f.read(4))
-                buf = np.empty(max(2 * buf.size, m + 8), dtype=np.uint8)
+                a = pos + int(nxt)
+                sid, m = struct.unpack("<ii", bytes(buf[int(nxt): int(nxt) + 8]))
+                raise ValueError(f"{name}: packet at byte {a} (stream {sid}) claims {m} bytes; "
+                                 f"the data end at byte {end}")
+            if status == 1:
+                if pos + got >= size:  # the window reached the end of the file
+                    raise ValueError(f"{name}: packet at byte {pos + int(nxt)} cut short: the "
+                                     f"file ends at byte {size}")
+                if int(nxt) == 0:  # one packet larger than the window (its header is in it)
+                    (m,) = struct.unpack("<i", bytes(buf[4:8]))
+                    buf = np.empty(max(2 * buf.size, m + 8), dtype=np.uint8)
             pos += int(nxt)
             if status == 0:
                 break

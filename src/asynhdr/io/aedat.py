@@ -81,9 +81,10 @@ def _short(exc: BaseException) -> str:
     return " ".join(lines[:2]) or type(exc).__name__
 
 
-def _open(p: Path) -> Any:
-    """dv-processing's reader, once the container is checked: dv-processing hangs on
-    some damaged LZ4 packets (see :mod:`asynhdr.io._aedat_check`)."""
+def _open(p: Path) -> tuple[Any, dict[str, Any]]:
+    """dv-processing's reader, once the container is checked (dv-processing hangs on
+    some damaged LZ4 packets, see :mod:`asynhdr.io._aedat_check`), and the header's
+    camera and stream names."""
     dv = _dv()
     try:
         check_aedat4(p, types=("EVTS", "TRIG"))
@@ -94,11 +95,15 @@ def _open(p: Path) -> Any:
         reader = dv.io.MonoCameraRecording(str(p))
     except Exception as exc:  # dv-processing raises RuntimeError for damaged files
         raise ValueError(f"{p}: not a readable AEDAT 4.0 file ({_short(exc)})") from exc
-    if not reader.isEventStreamAvailable():
-        raise ValueError(
-            f"{p}: no event stream; streams found: {list(reader.getStreamNames())}"
-        )
-    return reader
+    try:  # a damaged header can hold names that are not text
+        facts = {"camera": str(reader.getCameraName()),
+                 "streams": [str(s) for s in reader.getStreamNames()]}
+        has_events = bool(reader.isEventStreamAvailable())
+    except Exception as exc:
+        raise ValueError(f"{p}: damaged AEDAT 4.0 header ({_short(exc)})") from exc
+    if not has_events:
+        raise ValueError(f"{p}: no event stream; streams found: {facts['streams']}")
+    return reader, facts
 
 
 _DV_FIELDS = ("timestamp", "x", "y", "polarity")
@@ -216,12 +221,12 @@ def _read_triggers(p: Path, reader: Any) -> tuple[np.ndarray, dict[str, int]]:
     return tr, counts
 
 
-def _metadata(p: Path, reader: Any, counts: dict[str, int]) -> dict[str, Any]:
+def _metadata(p: Path, facts: dict[str, Any], counts: dict[str, int]) -> dict[str, Any]:
     return {
         "format": "aedat4",
         "source": str(p),
-        "camera": str(reader.getCameraName()),
-        "streams": [str(s) for s in reader.getStreamNames()],
+        "camera": facts["camera"],
+        "streams": facts["streams"],
         "trigger_records": dict(sorted(counts.items())),
         "trigger_channels": {"0": "EXTERNAL_SIGNAL", "1": "EXTERNAL_GENERATOR"},
     }
@@ -232,11 +237,11 @@ def aedat_info(path: str | os.PathLike[str]) -> dict[str, Any]:
     ``trigger_records`` (every trigger record by type) and the external ``triggers``
     count, without decoding the events."""
     p = _require_file(path)
-    reader = _open(p)
-    res = reader.getEventResolution()
+    reader, facts = _open(p)
+    width, height = _geometry(p, reader)
     tr, counts = _read_triggers(p, reader)
-    info = _metadata(p, reader, counts)
-    info.update(width=int(res[0]), height=int(res[1]), triggers=int(tr.size))
+    info = _metadata(p, facts, counts)
+    info.update(width=width, height=height, triggers=int(tr.size))
     return info
 
 
@@ -256,9 +261,15 @@ def iter_aedat(
 
 
 def _geometry(p: Path, reader: Any) -> tuple[int, int]:
-    res = reader.getEventResolution()
+    try:
+        res = reader.getEventResolution()
+    except Exception as exc:
+        raise ValueError(f"{p}: damaged AEDAT 4.0 header ({_short(exc)})") from exc
     if res is None:
         raise ValueError(f"{p}: the event stream gives no resolution")
+    if not (0 < int(res[0]) <= 65536 and 0 < int(res[1]) <= 65536):
+        raise ValueError(f"{p}: the event stream's resolution {int(res[0])}x{int(res[1])} "
+                         "is not a sensor's")
     return int(res[0]), int(res[1])
 
 
@@ -283,7 +294,7 @@ def _packets(p: Path, reader: Any) -> Iterator[np.ndarray]:
 
 
 def _iter(p: Path, chunk_events: int | None) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-    reader = _open(p)
+    reader, _ = _open(p)
     triggers, _ = _read_triggers(p, reader)
     paired = _pair_triggers(_packets(p, reader), triggers)
     if chunk_events is not None:
@@ -369,11 +380,11 @@ def read_aedat(path: str | os.PathLike[str]) -> Recording:
     An event outside the resolution raises ``ValueError`` naming the file, the event
     and the bound."""
     p = Path(path)
-    reader = _open(p)
+    reader, facts = _open(p)
     width, height = _geometry(p, reader)
     triggers, counts = _read_triggers(p, reader)
     events = _read_all_events(p, reader, width, height)
-    meta = _metadata(p, reader, counts)
+    meta = _metadata(p, facts, counts)
     logger.info("%s: AEDAT 4.0 from %s, %dx%d, %d events, %d external trigger edges "
                 "(%d trigger records)", p, meta["camera"], width, height, events.size,
                 triggers.size, sum(counts.values()))
