@@ -83,6 +83,21 @@ def _xxh32_short(buf, start, n):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
+def _length_bytes(buf, ip, end, n):  # pragma: no cover - compiled
+    """An LZ4 length's extra bytes from ``ip`` on (each adds its value; 255 means one
+    more follows): (length, position after them), the position ``end + 1`` when the
+    block ends first."""
+    while True:
+        if ip >= end:
+            return n, end + np.uint64(1)
+        s = np.int64(buf[ip])
+        ip += np.uint64(1)
+        n += s
+        if s != 255:
+            return n, ip
+
+
+@numba.njit(cache=True, nogil=True)
 def _lz4_block(buf, start, size, block_max, history):  # pragma: no cover - compiled
     """Walk one compressed LZ4 block: (bytes it decodes to, offset of the first bad
     byte or -1).
@@ -104,14 +119,9 @@ def _lz4_block(buf, start, size, block_max, history):  # pragma: no cover - comp
         ip += np.uint64(1)
         lit = token >> 4
         if lit == 15:
-            while True:
-                if ip >= end:
-                    return op, np.int64(ip)
-                s = np.int64(buf[ip])
-                ip += np.uint64(1)
-                lit += s
-                if s != 255:
-                    break
+            lit, ip = _length_bytes(buf, ip, end, lit)
+            if ip > end:
+                return op, np.int64(end)
         ip += np.uint64(lit)
         op += lit
         if ip + np.uint64(2) > end:
@@ -124,14 +134,9 @@ def _lz4_block(buf, start, size, block_max, history):  # pragma: no cover - comp
         ip += np.uint64(2)
         ml = token & 15
         if ml == 15:
-            while True:
-                if ip >= end:
-                    return op, np.int64(ip)
-                s = np.int64(buf[ip])
-                ip += np.uint64(1)
-                ml += s
-                if s != 255:
-                    break
+            ml, ip = _length_bytes(buf, ip, end, ml)
+            if ip > end:
+                return op, np.int64(end)
         op += ml + 4
 
 
