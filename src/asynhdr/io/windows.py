@@ -192,9 +192,10 @@ def rate_histogram(
     progress: Callable[[int], None] | None = None,
 ) -> np.ndarray:
     """Events per bin ``[t0 + i bin, t0 + (i + 1) bin)``, ``i < n_bins``, in one
-    streaming pass (as :func:`asynhdr.segment.event_rate` bins the times of a whole
-    recording); events outside the bins are not counted."""
+    streaming pass: :func:`asynhdr.segment.event_rate` chunk by chunk, summed; events
+    outside the bins are not counted."""
     from asynhdr.io import iter_chunks
+    from asynhdr.segment import event_rate
 
     if not bin_us > 0:
         raise ValueError(f"rate_histogram: bin_us must be positive, got {bin_us}")
@@ -204,9 +205,8 @@ def rate_histogram(
                              height=height, time_unit=time_unit):
         if ev.size == 0:
             continue
-        idx = np.floor((ev["t"] - t0_us) / float(bin_us)).astype(np.int64)
-        idx = idx[(idx >= 0) & (idx < counts.size)]
-        counts += np.bincount(idx, minlength=counts.size)
+        part = event_rate(ev["t"], bin_us=bin_us, t0_us=t0_us)[: counts.size]
+        counts[: part.size] += part
         seen += ev.size
         if progress is not None:
             progress(seen)
