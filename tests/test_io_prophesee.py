@@ -344,6 +344,128 @@ def test_evt3_hand_built_stream(tmp_path: Path) -> None:
         np.testing.assert_array_equal(triggers, rec.triggers)
 
 
+def _evt3_reference(
+    words: list[int], width: int, height: int
+) -> tuple[list[tuple[int, int, int, int]], list[tuple[int, bool, int]], tuple[int, str] | None]:
+    """A plain EVT 3.0 decoder, one word at a time, written from the format page and
+    OpenEB's rules: ``(events as (t, x, y, p), triggers, (word index, 'x=..' or 'y=..')
+    of the first event outside the sensor, or None)``."""
+    events: list[tuple[int, int, int, int]] = []
+    triggers: list[tuple[int, bool, int]] = []
+    started = False
+    loop = high = low = 0
+    y = 0
+    cd_row = False
+    base_x, base_p, has_base = 0, 1, False
+    for i, w in enumerate(words):
+        typ, v = w >> 12, w & 0xFFF
+        if not started:
+            if typ != 0x8:
+                continue  # words before the first TIME_HIGH cannot be timed
+            started, high = True, v
+            continue
+        t = (loop << 24) | (high << 12) | low
+        if typ == 0x8:
+            if v != high:
+                loop += high >= 2048 + v  # a fall of half the range or more is a wrap
+                high, low = v, 0
+        elif typ == 0x6:
+            low = v
+        elif typ == 0x0:
+            y, cd_row = v & 0x7FF, True
+        elif typ == 0x1:
+            cd_row = False
+        elif typ == 0x2 and cd_row:
+            x = v & 0x7FF
+            if x >= width or y >= height:
+                return events, triggers, (i, f"x={x}" if x >= width else f"y={y}")
+            events.append((t, x, y, 1 if v >> 11 else -1))
+        elif typ == 0x3:
+            base_x, base_p, has_base = v & 0x7FF, 1 if v >> 11 else -1, True
+        elif typ in (0x4, 0x5) and cd_row:
+            size = 12 if typ == 0x4 else 8
+            if has_base:
+                for bit in range(size):
+                    if (v >> bit) & 1:
+                        x = base_x + bit
+                        if y >= height:
+                            return events, triggers, (i, f"y={y}")
+                        if x >= width:
+                            return events, triggers, (i, f"x={x}")
+                        events.append((t, x, y, base_p))
+            base_x += size
+        elif typ == 0xA:
+            triggers.append((t, bool(v & 1), (v >> 8) & 0xF))
+    return events, triggers, None
+
+
+# Words of a plausible EVT 3.0 stream on a 64x8 sensor, with time-high values that wrap
+# and step back, and every other word type; one word may point outside the sensor.
+_TIME_HIGH = st.sampled_from([0x000, 0x001, 0x002, 0x7FF, 0x800, 0x801, 0xFFF])
+_COLUMN = st.integers(0, 63)
+_ROW = st.integers(0, 7)
+_EVT3_WORD = st.one_of(
+    _TIME_HIGH.map(lambda v: 0x8000 | v),
+    st.integers(0, 0xFFF).map(lambda v: 0x6000 | v),
+    _ROW.map(lambda v: v | (0x800 if v % 3 == 0 else 0)),  # EVT_ADDR_Y (bit 11: system type)
+    _ROW.map(lambda v: 0x1000 | v),
+    st.tuples(_COLUMN, st.booleans()).map(lambda a: 0x2000 | a[0] | (a[1] << 11)),
+    st.tuples(st.integers(0, 72), st.booleans()).map(lambda a: 0x3000 | a[0] | (a[1] << 11)),
+    st.integers(0, 0xFFF).map(lambda v: 0x4000 | v),
+    st.integers(0, 0xFF).map(lambda v: 0x5000 | v),
+    st.integers(0, 0xFFF).map(lambda v: 0xA000 | (v & 0xF01)),
+    st.sampled_from([0x7ABC, 0x9000, 0xB000, 0xC000, 0xD000, 0xE014, 0xF123]),
+)
+_EVT3_GROUPS = st.one_of(
+    _EVT3_WORD.map(lambda w: [w]),
+    st.tuples(_TIME_HIGH, _TIME_HIGH).map(lambda a: [0x8000 | a[0], 0x8000 | a[1]]),
+    # the word groups the decoder takes in one step: a lone event, a 32-column vector
+    st.tuples(st.integers(0, 0xFFF), _ROW, _COLUMN, st.booleans()).map(
+        lambda a: [0x6000 | a[0], a[1], 0x2000 | a[2] | (a[3] << 11)]
+    ),
+    st.tuples(st.integers(0, 40), st.integers(0, 0xFFFFFFFF)).map(
+        lambda a: [0x3000 | a[0], 0x4000 | (a[1] & 0xFFF), 0x4000 | ((a[1] >> 12) & 0xFFF),
+                   0x5000 | (a[1] >> 24)]
+    ),
+)
+_OUTSIDE = st.sampled_from(
+    [[0x2040], [0x0008], [0x6000, 0x0008, 0x2001], [0x6000, 0x0001, 0x2840], [0x303C, 0x4010],
+     [0x3820, 0x4000, 0x4000, 0x5001]]
+)
+
+
+@settings(
+    max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(
+    groups=st.lists(_EVT3_GROUPS, min_size=10, max_size=60),
+    outside=st.one_of(st.none(), st.tuples(st.integers(0, 60), _OUTSIDE)),
+)
+def test_evt3_decoder_equals_a_plain_reference(
+    tmp_path: Path, groups: list[list[int]], outside: tuple[int, list[int]] | None
+) -> None:
+    if outside is not None:
+        groups.insert(min(outside[0], len(groups)), outside[1])
+    words = [0x8000, 0x0001] + [w for g in groups for w in g]
+    path = _write(tmp_path / "ref.raw", EVT3_HEADER, np.array(words, dtype="<u2"))
+    events, triggers, error = _evt3_reference(words, 64, 8)
+    if error is not None:
+        offset = len(EVT3_HEADER) + 2 * error[0]
+        with pytest.raises(ValueError, match=rf"ref\.raw.*byte offset {offset}\b.*{error[1]}\b"):
+            pr.read_raw(path)
+        with pytest.raises(ValueError, match=rf"byte offset {offset}\b"):
+            list(pr.iter_raw(path, chunk_events=3, block_bytes=8))
+        return
+    rec = pr.read_raw(path)
+    np.testing.assert_array_equal(rec.events, _ev(events))
+    expected_tr = _tr(triggers)
+    by_time = np.argsort(expected_tr["t"], kind="stable")
+    np.testing.assert_array_equal(rec.triggers, expected_tr[by_time])
+    got, got_tr = _concat(list(pr.iter_raw(path, chunk_events=3, block_bytes=8)))
+    np.testing.assert_array_equal(got, rec.events)
+    np.testing.assert_array_equal(got_tr, expected_tr)
+
+
 def test_evt3_vector_without_base_is_dropped(tmp_path: Path) -> None:
     # OpenEB drops vectors until a VECT_BASE_X has set the base column.
     words = np.array([0x8000, 0x0001, 0x4FFF, 0x3002, 0x4003], dtype="<u2")
@@ -634,6 +756,34 @@ def test_unsupported_or_missing_format_lists_supported(tmp_path: Path, header: s
     path = _write(tmp_path / "u.raw", header, b"\x00\x80\x01\x00")
     with pytest.raises(ValueError, match=r"u\.raw.*EVT 2\.0.*EVT 2\.1.*EVT 3\.0"):
         pr.read_raw(path)
+
+
+def test_long_header_lines_across_reads(tmp_path: Path) -> None:
+    # Header lines longer than the first read and than the later ones; the payload
+    # starts right after '% end', whatever its first byte.
+    long_value = "v" * 70_000
+    body = EVT3_HEADER.replace("% end\n", "")
+    header = f"% note {long_value}\n{body}% other {long_value}x\n% end\n"
+    words = np.array([0x8000, 0x0001, 0x2002], "<u2").tobytes()
+    path = _write(tmp_path / "long.raw", header, words)
+    info = pr.raw_info(path)
+    assert info["header_bytes"] == len(header)
+    assert info["header"]["note"] == long_value
+    assert info["header"]["other"] == long_value + "x"
+    np.testing.assert_array_equal(pr.read_raw(path).events, _ev([(0, 2, 1, -1)]))
+
+
+def test_header_past_the_limit_is_refused(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(pr, "_MAX_HEADER_BYTES", 10_000)
+    path = _write(tmp_path / "noeol.raw", "%" + "a" * 200_000, b"")
+    with pytest.raises(ValueError, match=r"noeol\.raw: header line at byte 0 runs past 10000"):
+        pr.raw_info(path)
+    path = _write(tmp_path / "many.raw", "% note x\n" * 2_000 + EVT3_HEADER, b"")
+    with pytest.raises(ValueError, match=r"many\.raw: header is longer than 10000 bytes"):
+        pr.raw_info(path)
+    # Just under the limit is fine.
+    path = _write(tmp_path / "fits.raw", "% note x\n" * 1_000 + EVT3_HEADER, b"")
+    assert pr.raw_info(path)["header_bytes"] == 9_000 + len(EVT3_HEADER)
 
 
 def test_missing_file_or_folder(tmp_path: Path) -> None:

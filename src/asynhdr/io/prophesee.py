@@ -150,34 +150,34 @@ _EVT21_LEGACY_BEFORE_SYSTEM_ID = 0x37
 def _read_header(f: BinaryIO, name: str) -> tuple[list[str], int]:
     """Return the '%' lines at the start of ``f`` (without '%') and the payload offset."""
     lines: list[str] = []
-    buf = b""
-    pos = 0  # offset of buf[0] in the file
     f.seek(0)
+    buf = f.read(4096)  # a header is usually a few hundred bytes
+    at = 0  # offset in the file of the line being read (and of buf[at])
     while True:
-        # Make sure buf holds the next byte, then the whole line if it is a header line.
-        if len(buf) == 0:
-            buf = f.read(1 << 16)
-            if not buf:
-                return lines, pos
-        if buf[:1] != b"%":
-            return lines, pos
-        nl = buf.find(b"\n")
-        while nl < 0:
+        if at >= len(buf):
             more = f.read(1 << 16)
             if not more:
-                break
+                return lines, at
             buf += more
-            nl = buf.find(b"\n")
-            if pos + len(buf) > _MAX_HEADER_BYTES:
+        if buf[at : at + 1] != b"%":
+            return lines, at
+        nl = buf.find(b"\n", at)
+        while nl < 0:
+            if len(buf) > _MAX_HEADER_BYTES:
                 raise ValueError(
-                    f"{name}: header line at byte {pos} runs past {_MAX_HEADER_BYTES} bytes "
+                    f"{name}: header line at byte {at} runs past {_MAX_HEADER_BYTES} bytes "
                     "without a newline; not a Prophesee .raw file"
                 )
+            more = f.read(max(1 << 16, len(buf)))
+            if not more:
+                break
+            start = len(buf)
+            buf += more
+            nl = buf.find(b"\n", start)
         end = len(buf) if nl < 0 else nl + 1
-        raw_line = buf[:end]
-        buf = buf[end:]
-        pos += end
-        if pos > _MAX_HEADER_BYTES:
+        raw_line = buf[at:end]
+        at = end
+        if at > _MAX_HEADER_BYTES:
             raise ValueError(
                 f"{name}: header is longer than {_MAX_HEADER_BYTES} bytes; "
                 "not a Prophesee .raw file"
@@ -185,7 +185,7 @@ def _read_header(f: BinaryIO, name: str) -> tuple[list[str], int]:
         text = raw_line.decode("utf-8", errors="replace").rstrip("\r\n")
         body = text[1:].strip()
         if body == "end":
-            return lines, pos
+            return lines, at
         lines.append(body)
 
 
