@@ -23,6 +23,7 @@ from asynhdr.io import (
     recording_info,
     write_recording,
 )
+from asynhdr.io.aedat import aedat_info, iter_aedat, read_aedat
 from asynhdr.io.hdf5 import Hdf5Writer, iter_hdf5, load_hdf5, save_hdf5
 from asynhdr.io.npz import load_npz, npz_info, save_npz
 from asynhdr.io.text import iter_text, read_text, save_text
@@ -65,6 +66,50 @@ def manifest_events(ev: np.ndarray, i: int) -> list[int]:
     return [int(e["t"]), int(e["x"]), int(e["y"]), 1 if int(e["p"]) > 0 else 0]
 
 
+def dv_reference(path: Path) -> dict[str, Any]:
+    """What dv-processing, iniVation's library, reads from an AEDAT 4.0 file: events as
+    EVENT_DTYPE, trigger records (type name, timestamp), camera, streams, resolution."""
+    import dv_processing as dv
+
+    r = dv.io.MonoCameraRecording(str(path))
+    parts = []
+    while (batch := r.getNextEventBatch()) is not None:
+        parts.append(batch.numpy())
+    a = np.concatenate(parts) if parts else np.zeros(0, parts[0].dtype)
+    ev = make_events(a["x"], a["y"], np.where(a["polarity"], 1, -1), a["timestamp"])
+    records = []
+    if r.isTriggerStreamAvailable():
+        while (tb := r.getNextTriggerBatch()) is not None:
+            records += [(t.type.name, t.timestamp) for t in tb]
+    return {"events": ev, "triggers": records, "camera": r.getCameraName(),
+            "streams": list(r.getStreamNames()), "resolution": tuple(r.getEventResolution())}
+
+
+def assert_same_as_dv(path: Path) -> None:
+    """read_aedat and iter_aedat give what dv-processing reads."""
+    from collections import Counter
+
+    ref = dv_reference(path)
+    rec = read_aedat(path)
+    np.testing.assert_array_equal(rec.events, ref["events"])
+    assert (rec.width, rec.height) == ref["resolution"]
+    assert rec.metadata["camera"] == ref["camera"]
+    assert rec.metadata["streams"] == ref["streams"]
+    assert rec.metadata["trigger_records"] == dict(Counter(k for k, _ in ref["triggers"]))
+    edges = {"EXTERNAL_SIGNAL_RISING_EDGE": (True, 0), "EXTERNAL_SIGNAL_FALLING_EDGE": (False, 0),
+             "EXTERNAL_SIGNAL_PULSE": (True, 0), "EXTERNAL_GENERATOR_RISING_EDGE": (True, 1),
+             "EXTERNAL_GENERATOR_FALLING_EDGE": (False, 1)}
+    expected = sorted(((t, *edges[k]) for k, t in ref["triggers"] if k in edges),
+                      key=lambda e: e[0])
+    assert [(int(t["t"]), bool(t["rising"]), int(t["id"])) for t in rec.triggers] == expected
+    ev, tr = concat(list(iter_aedat(path, chunk_events=997)))
+    np.testing.assert_array_equal(ev, rec.events)
+    np.testing.assert_array_equal(tr, rec.triggers)
+    info = aedat_info(path)
+    assert (info["width"], info["height"], info["triggers"]) == (rec.width, rec.height,
+                                                                 rec.triggers.size)
+
+
 # ----------------------------------------------------------------------------- real .aedat4
 
 
@@ -83,6 +128,12 @@ def test_aedat4_matches_manifest(data_dir: Path, manifest: dict[str, Any], rel: 
     assert sum(records.values()) == facts.get("triggers_count", 0)
     if records:  # the DAVIS346 sample: frame and exposure markers only
         assert all(k.startswith("APS_") for k in records)
+
+
+@pytest.mark.parametrize("rel", AEDAT_FILES)
+def test_aedat4_real_files_equal_dv_processing(data_dir: Path, rel: str) -> None:
+    pytest.importorskip("dv_processing")
+    assert_same_as_dv(data_dir / rel)
 
 
 @pytest.mark.parametrize("rel", AEDAT_FILES)
@@ -148,6 +199,40 @@ def test_aedat4_external_triggers_and_compression(tmp_path: Path, compression: s
     ev, tr = concat(list(iter_chunks(path, chunk_events=15)))
     np.testing.assert_array_equal(ev, rec.events)
     np.testing.assert_array_equal(tr, rec.triggers)
+
+
+@pytest.mark.parametrize("compression", ["NONE", "LZ4", "LZ4_HIGH", "ZSTD", "ZSTD_HIGH"])
+def test_aedat4_every_compression_equals_dv_processing(tmp_path: Path, compression: str) -> None:
+    """Files written by dv-processing with each compression, many packets (one empty),
+    IMU and trigger streams beside the events: read as dv-processing reads them."""
+    dv = pytest.importorskip("dv_processing")
+    path = tmp_path / f"c_{compression}.aedat4"
+    cfg = dv.io.MonoCameraWriter.Config("CAM_" + compression)
+    cfg.compression = getattr(dv.CompressionType, compression)
+    cfg.addEventStream((640, 480))
+    cfg.addImuStream()
+    cfg.addTriggerStream()
+    writer = dv.io.MonoCameraWriter(str(path), cfg)
+    rng = np.random.default_rng(3)
+    kinds = list(dv.TriggerType.__members__.values())
+    t = 1_700_000_000_000_000
+    for k in range(9):
+        store = dv.EventStore()
+        for _ in range(0 if k == 4 else int(rng.integers(1, 3_000))):
+            t += int(rng.integers(0, 3))
+            store.push_back(t, int(rng.integers(0, 640)), int(rng.integers(0, 480)),
+                            bool(rng.integers(0, 2)))
+        writer.writeEvents(store)
+        writer.writeImu(dv.IMU(t, 25.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
+        for j in range(k):
+            writer.writeTrigger(dv.Trigger(t + j, kinds[(k + j) % len(kinds)]))
+        t += k
+    del writer  # closes the file
+    rec = read_aedat(path)
+    assert rec.events.size > 10_000
+    assert sum(rec.metadata["trigger_records"].values()) == sum(range(9))
+    assert rec.metadata["camera"] == "CAM_" + compression
+    assert_same_as_dv(path)
 
 
 def write_aedat4_packets(path: Path, packets: list[list[tuple[int, int, int, bool]]], *,
@@ -684,13 +769,14 @@ def test_readers_on_truncated_or_flipped_files(fuzz_dir: Path, ext: str, cut: fl
         assert path.name in str(exc), str(exc)
 
 
-def _aedat4_template(folder: Path) -> bytes:
-    """An LZ4 AEDAT 4.0 file written by dv-processing: 12 packets of events, triggers."""
-    if ".aedat4" not in _TEMPLATES:
+def _aedat4_template(folder: Path, compression: str = "LZ4") -> bytes:
+    """An AEDAT 4.0 file written by dv-processing: 12 packets of events, triggers."""
+    key = ".aedat4" + compression
+    if key not in _TEMPLATES:
         dv = pytest.importorskip("dv_processing")
-        path = folder / "template.aedat4"
+        path = folder / f"template_{compression}.aedat4"
         cfg = dv.io.MonoCameraWriter.Config("TESTCAM")
-        cfg.compression = dv.CompressionType.LZ4
+        cfg.compression = getattr(dv.CompressionType, compression)
         cfg.addEventStream((64, 48))
         cfg.addTriggerStream()
         writer = dv.io.MonoCameraWriter(str(path), cfg)
@@ -704,8 +790,8 @@ def _aedat4_template(folder: Path) -> bytes:
             writer.writeTrigger(dv.Trigger(10_000 + 1_000 * k,
                                            dv.TriggerType.EXTERNAL_SIGNAL_RISING_EDGE))
         del writer  # closes the file
-        _TEMPLATES[".aedat4"] = path.read_bytes()
-    return _TEMPLATES[".aedat4"]
+        _TEMPLATES[key] = path.read_bytes()
+    return _TEMPLATES[key]
 
 
 def _dat_template() -> bytes:
@@ -755,10 +841,28 @@ def test_aedat4_and_dat_readers_on_truncated_or_flipped_files(
             faulthandler.cancel_dump_traceback_later()
 
 
+@_PROPERTY
+@given(cut=st.one_of(st.just(1.0), st.floats(0.0, 1.0)),
+       flips=st.lists(st.tuples(st.floats(0.0, 1.0), st.integers(1, 255)), min_size=1,
+                      max_size=4))
+def test_aedat4_stored_packets_damaged(fuzz_dir: Path, cut: float,
+                                       flips: list[tuple[float, int]]) -> None:
+    """An uncompressed AEDAT 4.0 file, damaged: every flipped byte of a packet lands in
+    its flatbuffer (offsets, counts, trigger tables), which the own decoder checks
+    before it reads: valid events or a ValueError naming the file."""
+    path = fuzz_dir / "stored.aedat4"
+    path.write_bytes(_damage(_aedat4_template(fuzz_dir, "NONE"), cut, flips))
+    _valid_or_named_error(open_recording, path)
+    for reader in (recording_info, lambda q: list(iter_chunks(q, chunk_events=1000))):
+        try:
+            reader(path)
+        except ValueError as exc:
+            assert path.name in str(exc), str(exc)
+
+
 def test_aedat4_damaged_lz4_packet_is_refused_with_its_offset(fuzz_dir: Path) -> None:
     """A compressed event packet whose block runs past its end (bytes 0xFF: a literal
-    length that never stops) is refused before dv-processing decodes it, naming the
-    packet and the byte."""
+    length that never stops) is refused, naming the packet."""
     good = _aedat4_template(fuzz_dir)
     hsize = int.from_bytes(good[14:18], "little")
     at = 18 + hsize  # the first packet; its LZ4 frame starts 8 bytes later
@@ -767,9 +871,28 @@ def test_aedat4_damaged_lz4_packet_is_refused_with_its_offset(fuzz_dir: Path) ->
     b[at + 8 + 20: at + 8 + size - 8] = b"\xff" * (size - 28)
     path = fuzz_dir / "ff.aedat4"
     path.write_bytes(bytes(b))
-    with pytest.raises(ValueError, match=rf"ff\.aedat4: packet of stream 0 at byte {at}: "
-                                         r"LZ4 block data that does not decode \(byte \d+\)"):
+    with pytest.raises(ValueError, match=rf"ff\.aedat4: packet at byte {at} \(stream 0\): "
+                                         r"its LZ4 data do not decode"):
         open_recording(path)
+
+
+def test_aedat4_damaged_file_table_is_not_read(fuzz_dir: Path) -> None:
+    """dv-processing never returns from this file (a byte of its file data table
+    flipped, the packets intact); the table is an index the reader does not need."""
+    good = _aedat4_template(fuzz_dir)
+    from asynhdr.io._aedat_decode import open_container
+
+    c = open_container(fuzz_dir / "template_LZ4.aedat4")
+    assert 0 < c.table < len(good)
+    ref = open_recording(fuzz_dir / "template_LZ4.aedat4")
+    for at in range(c.table, len(good), 7):
+        b = bytearray(good)
+        b[at] ^= 0x5A
+        path = fuzz_dir / "table.aedat4"
+        path.write_bytes(bytes(b))
+        rec = open_recording(path)
+        np.testing.assert_array_equal(rec.events, ref.events)
+        np.testing.assert_array_equal(rec.triggers, ref.triggers)
 
 
 @_PROPERTY
@@ -860,11 +983,11 @@ def test_cli_info_errors(tmp_path: Path) -> None:
     assert "absent.npz" in res.output
 
 
-def test_aedat4_check_reads_in_windows_of_any_size(fuzz_dir: Path,
-                                                    monkeypatch: pytest.MonkeyPatch) -> None:
-    """The container check reads the file a window at a time (packets larger than a
-    window make it grow): the verdicts do not depend on the window's size."""
-    from asynhdr.io import _aedat_check
+def test_aedat4_reads_in_windows_of_any_size(fuzz_dir: Path,
+                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    """The reader reads the file a window at a time (packets larger than a window make
+    it grow): results and errors do not depend on the window's size."""
+    from asynhdr.io import _aedat_decode
 
     good = _aedat4_template(fuzz_dir)
     rng = np.random.default_rng(12)
@@ -875,20 +998,24 @@ def test_aedat4_check_reads_in_windows_of_any_size(fuzz_dir: Path,
         b[i] ^= int(rng.integers(1, 256))
         variants.append(bytes(b))
 
-    def verdicts() -> list[str]:
-        out = []
+    def outcomes() -> list[Any]:
+        out: list[Any] = []
         for k, data in enumerate(variants):
             path = fuzz_dir / f"window_{k}.aedat4"
             path.write_bytes(data)
             try:
-                _aedat_check.check_aedat4(path)
-                out.append("fine")
+                rec = open_recording(path)
+                out.append((rec.events.tobytes(), rec.triggers.tobytes()))
             except ValueError as exc:
                 out.append(str(exc))
         return out
 
-    reference = verdicts()
-    assert reference[0] == "fine" and "cut short" in reference[1] + reference[2]
+    reference = outcomes()
+    assert isinstance(reference[0], tuple)
+    assert reference[1] == reference[0]  # cut inside the file data table: packets whole
+    assert "claims 3455 bytes; the data end at byte" in str(reference[2])
     for window in (64, 700):
-        monkeypatch.setattr(_aedat_check, "_WINDOW_BYTES", window)
-        assert verdicts() == reference
+        monkeypatch.setattr(_aedat_decode, "_WINDOW_BYTES", window)
+        monkeypatch.setattr(_aedat_decode, "_BUFFERS", _aedat_decode.Recycler(keep=2,
+                                                                             max_bytes=window))
+        assert outcomes() == reference

@@ -48,7 +48,7 @@ logger = logging.getLogger(__name__)
 SUPPORTED_FORMATS: dict[str, str] = {
     ".raw": "Prophesee RAW, EVT 2.0 / 2.1 / 3.0 (Metavision, OpenEB), with triggers",
     ".dat": "Prophesee DAT, CD events (legacy Metavision)",
-    ".aedat4": "iniVation AEDAT 4.0 (DV, dv-processing), LZ4 or Zstd, with triggers",
+    ".aedat4": "iniVation AEDAT 4.0 (DV), uncompressed, LZ4 or Zstd, with triggers",
     ".h5": "HDF5, asynhdr layout (events/x,y,t,p; triggers/t,rising,id)",
     ".hdf5": "HDF5, asynhdr layout (same as .h5)",
     ".npz": "NumPy archive, asynhdr layout (events_x, ..., metadata)",
@@ -531,56 +531,65 @@ def write_recording(path: str | os.PathLike[str], recording: Recording) -> None:
 
 
 class _Histogram:
-    """Events per bin over a growing time range (µs), coarsened when it gets too long."""
+    """Events per bin over a growing time range (µs), coarsened when it gets too long.
+
+    ``counts[k]`` holds the events of bin ``first + k``, bin ``j`` covering
+    ``[j * bin_us, (j + 1) * bin_us)``. Bin numbers are Python ints and event times are
+    divided before anything is subtracted, so no time in the int64 range overflows
+    (a damaged file can hold any)."""
 
     MAX_BINS = 1 << 26
 
     def __init__(self, bin_us: int) -> None:
         self.bin_us = int(bin_us)
-        self.origin: int | None = None
+        self.first: int | None = None
         self.counts = np.zeros(0, dtype=np.int64)
 
     def add(self, t: np.ndarray) -> None:
         if t.size == 0:
             return
-        if self.origin is None:
-            self.origin = (int(t[0]) // self.bin_us - 64) * self.bin_us
-            self.counts = np.zeros(1024, dtype=np.int64)
-        lo_t, hi_t = int(t.min()), int(t.max())
         while True:
-            lo = (lo_t - self.origin) // self.bin_us
-            hi = (hi_t - self.origin) // self.bin_us
+            b = t // self.bin_us
+            lo_b, hi_b = int(b.min()), int(b.max())
+            if self.first is None:
+                self.first = lo_b - 64
+                self.counts = np.zeros(1024, dtype=np.int64)
+            lo, hi = lo_b - self.first, hi_b - self.first
             if hi - min(lo, 0) + 1 <= self.MAX_BINS:
                 break
             self._coarsen()
         if lo < 0:
-            pad = int(-lo) + 64
+            pad = -lo + 64
             self.counts = np.concatenate([np.zeros(pad, dtype=np.int64), self.counts])
-            self.origin -= pad * self.bin_us
+            self.first -= pad
             lo, hi = lo + pad, hi + pad
         if hi >= self.counts.size:
-            grow = max(int(hi) + 1, 2 * self.counts.size)
+            grow = max(hi + 1, 2 * self.counts.size)
             self.counts = np.concatenate(
                 [self.counts, np.zeros(min(grow, self.MAX_BINS) - self.counts.size,
                                        dtype=np.int64)])
-        idx = (t - self.origin) // self.bin_us
-        bc = np.bincount(idx - lo)
-        self.counts[int(lo) : int(lo) + bc.size] += bc
+        bc = np.bincount(b - lo_b)
+        self.counts[lo : lo + bc.size] += bc
 
     def _coarsen(self) -> None:
+        assert self.first is not None
         c = self.counts
+        if self.first % 2:  # pairs of bins must start on an even bin
+            c = np.concatenate([np.zeros(1, dtype=np.int64), c])
+            self.first -= 1
         if c.size % 2:
             c = np.concatenate([c, np.zeros(1, dtype=np.int64)])
         self.counts = c.reshape(-1, 2).sum(axis=1)
+        self.first //= 2
         self.bin_us *= 2
 
     def result(self) -> tuple[int, np.ndarray]:
         """``(t0_us, counts)`` trimmed to the first and last non-empty bins."""
-        if self.origin is None:
+        if self.first is None:
             return 0, np.zeros(0, dtype=np.int64)
         nz = np.flatnonzero(self.counts)
         a, b = int(nz[0]), int(nz[-1]) + 1
-        return self.origin + a * self.bin_us, self.counts[a:b].copy()
+        return (self.first + a) * self.bin_us, self.counts[a:b].copy()
 
 
 @dataclass(frozen=True, eq=False)

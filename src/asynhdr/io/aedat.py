@@ -1,6 +1,15 @@
-"""iniVation AEDAT 4.0 recordings (``.aedat4``) through dv-processing.
+"""iniVation AEDAT 4.0 recordings (``.aedat4``).
 
-dv-processing (iniVation's library) decodes the container (LZ4 or Zstd packets).
+The container is walked and its event and trigger packets decoded here
+(:mod:`asynhdr.io._aedat_decode`: LZ4 by python-lz4, Zstd by zstandard, dv's
+flatbuffers parsed with every offset checked), window by window: memory stays flat in
+file size, and damaged data raise a ``ValueError`` naming the file and the packet.
+dv-processing, iniVation's library, reads the same files to the same result (the tests
+compare the two on every compression), but it is not used here: it never returns from
+some damaged files (an LZ4 packet whose decoding fails without consuming input, or a
+damaged file data table, which a check of the LZ4 data cannot see), holding the GIL
+meanwhile, and it copies every packet out once more.
+
 Events become ``EVENT_DTYPE`` (AEDAT polarity 1 -> +1 ON, 0 -> -1 OFF; times in
 µs as recorded, often Unix time).
 
@@ -8,7 +17,7 @@ Triggers: an AEDAT trigger record has a type. Only the external-input types mark
 modulation cycles, and become ``TRIGGER_DTYPE`` edges:
 
 ==================================  ===========  ==
-dv.TriggerType                      rising       id
+TriggerType                         rising       id
 ==================================  ===========  ==
 EXTERNAL_SIGNAL_RISING_EDGE         True         0
 EXTERNAL_SIGNAL_FALLING_EDGE        False        0
@@ -20,17 +29,11 @@ EXTERNAL_GENERATOR_FALLING_EDGE     False        1
 Every record, external or not (APS frame and exposure markers, timestamp resets),
 is counted by type in ``metadata["trigger_records"]``.
 
-Before dv-processing opens a file, :func:`asynhdr.io._aedat_check.check_aedat4` walks
-its container and checks the LZ4 data of the event and trigger packets: dv-processing
-never returns from some damaged LZ4 packets (one flipped byte can do it) and holds the
-GIL meanwhile, so such a file is refused first, with the packet and byte named. The
-check reads the file once more and costs about half of dv-processing's own read.
-
-Each event packet is copied out of dv-processing and converted at once (still in
-cache), in one compiled pass that also checks every pixel against the event stream's
-resolution: an event outside it raises a ``ValueError`` naming the file, the event's
-index and the bound. That pass is the whole check: the ``Recording`` is built with
-:meth:`~asynhdr.events.Recording.from_checked` and does not scan the events again.
+Each event packet is converted in one compiled pass that also checks every pixel
+against the event stream's resolution: an event outside it raises a ``ValueError``
+naming the file, the event's index and the bound. That pass is the whole check: the
+``Recording`` is built with :meth:`~asynhdr.events.Recording.from_checked` and does not
+scan the events again.
 """
 
 from __future__ import annotations
@@ -45,8 +48,8 @@ import numba
 import numpy as np
 
 from asynhdr.events import EVENT_DTYPE, TRIGGER_DTYPE, Recording, empty_triggers
+from asynhdr.io import _aedat_decode as _own
 from asynhdr.io import _pair_triggers, _require_file
-from asynhdr.io._aedat_check import check_aedat4
 
 __all__ = ["EXTERNAL_TRIGGER_TYPES", "aedat_info", "iter_aedat", "read_aedat"]
 
@@ -62,54 +65,10 @@ EXTERNAL_TRIGGER_TYPES: dict[str, tuple[bool, int]] = {
 """AEDAT trigger type name -> (rising, id) of the edge it becomes."""
 
 
-def _dv() -> Any:
-    try:
-        import dv_processing as dv
-    except ImportError as exc:  # pragma: no cover - a declared dependency
-        raise ImportError("reading .aedat4 needs dv-processing (pip install dv-processing)") \
-            from exc
-    return dv
-
-
-def _short(exc: BaseException) -> str:
-    """dv-processing's error text without its stack trace."""
-    text = str(exc)
-    if "Error info:" in text:
-        text = text.split("Error info:", 1)[1]
-    text = text.split("Stacktrace:", 1)[0]
-    lines = [ln.strip() for ln in text.strip().splitlines() if ln.strip()]
-    return " ".join(lines[:2]) or type(exc).__name__
-
-
-def _open(p: Path) -> tuple[Any, dict[str, Any]]:
-    """dv-processing's reader, once the container is checked (dv-processing hangs on
-    some damaged LZ4 packets, see :mod:`asynhdr.io._aedat_check`), and the header's
-    camera and stream names."""
-    dv = _dv()
-    try:
-        check_aedat4(p, types=("EVTS", "TRIG"))
-    except OSError:
-        _require_file(p)  # a missing file or a folder gets its own message
-        raise
-    try:
-        reader = dv.io.MonoCameraRecording(str(p))
-    except Exception as exc:  # dv-processing raises RuntimeError for damaged files
-        raise ValueError(f"{p}: not a readable AEDAT 4.0 file ({_short(exc)})") from exc
-    try:  # a damaged header can hold names that are not text
-        facts = {"camera": str(reader.getCameraName()),
-                 "streams": [str(s) for s in reader.getStreamNames()]}
-        has_events = bool(reader.isEventStreamAvailable())
-    except Exception as exc:
-        raise ValueError(f"{p}: damaged AEDAT 4.0 header ({_short(exc)})") from exc
-    if not has_events:
-        raise ValueError(f"{p}: no event stream; streams found: {facts['streams']}")
-    return reader, facts
-
-
 _DV_FIELDS = ("timestamp", "x", "y", "polarity")
 _MAX_INITIAL_EVENTS = 1 << 24  # 218 MB of EVENT_DTYPE reserved at most before it grows
 _COPY_TRIM_BYTES = 32 << 20  # glibc's largest heap-served block (DEFAULT_MMAP_THRESHOLD_MAX)
-_GROUP_EVENTS = 1 << 22  # events of the dv packets held before converting (64 MB)
+_GROUP_EVENTS = 1 << 22  # events of decoded packets held before converting (64 MB)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -146,7 +105,7 @@ def _check_dv_dtype(p: Path, dt: np.dtype) -> None:
     names = dt.names
     if names is None or any(f not in names for f in _DV_FIELDS):
         raise ValueError(
-            f"{p}: dv-processing gave event records with fields {names}; "
+            f"{p}: event packet records with fields {names}; "
             f"expected {', '.join(_DV_FIELDS)}"
         )
 
@@ -164,61 +123,81 @@ def _raise_outside(p: Path, a: np.ndarray, start: int, width: int, height: int) 
                      "event stream's resolution")
 
 
-def _next_batch(p: Path, reader: Any) -> Any:
-    try:
-        return reader.getNextEventBatch()
-    except Exception as exc:  # dv-processing raises RuntimeError for damaged packets
-        raise ValueError(f"{p}: damaged event packet ({_short(exc)})") from exc
-
-
-_TRIGGER_CODES: dict[str, dict[int, Any]] = {}
-
-
-def _trigger_codes() -> tuple[dict[int, str], dict[int, tuple[bool, int]]]:
-    """dv.TriggerType value -> name, and external value -> (rising, id); built once
-    (``int(record.type)`` and a look-up by int cost far less than ``.type.name``)."""
-    if not _TRIGGER_CODES:
-        members = _dv().TriggerType.__members__
-        _TRIGGER_CODES["names"] = {int(m): name for name, m in members.items()}
-        _TRIGGER_CODES["edges"] = {int(members[name]): edge
-                                   for name, edge in EXTERNAL_TRIGGER_TYPES.items()
-                                   if name in members}
-    return _TRIGGER_CODES["names"], _TRIGGER_CODES["edges"]
-
-
-def _read_triggers(p: Path, reader: Any) -> tuple[np.ndarray, dict[str, int]]:
-    """External edges as TRIGGER_DTYPE, and counts of every record by type name."""
+def _edges(codes: np.ndarray, times: np.ndarray, names: dict[int, str],
+           edges: dict[int, tuple[bool, int]]) -> tuple[np.ndarray, dict[str, int]]:
+    """Trigger records (type codes, timestamps) -> external edges as TRIGGER_DTYPE
+    (sorted by time, stably) and the count of every record by type name."""
     counts: dict[str, int] = {}
-    if not reader.isTriggerStreamAvailable():
-        return empty_triggers(), counts
-    names, edges = _trigger_codes()
-    records: list[tuple[int, int]] = []  # (type code, timestamp)
-    try:
-        while True:
-            batch = reader.getNextTriggerBatch()
-            if batch is None:
-                break
-            # indexing: pybind's iterator costs µs per batch
-            records.extend((int(r.type), r.timestamp) for r in map(batch.__getitem__,
-                                                                    range(len(batch))))
-    except ValueError:
-        raise
-    except Exception as exc:
-        raise ValueError(f"{p}: damaged trigger stream ({_short(exc)})") from exc
-    for code in {c for c, _ in records}:
+    kinds, n_kind = np.unique(codes, return_counts=True)
+    for code, k in zip(kinds.tolist(), n_kind.tolist(), strict=True):
         name = names.get(code, f"TRIGGER_TYPE_{code}")
-        counts[name] = counts.get(name, 0) + sum(1 for c, _ in records if c == code)
-    kept = [(t, edges[c]) for c, t in records if c in edges]
-    if not kept:
+        counts[name] = counts.get(name, 0) + k
+    keep = np.isin(codes, list(edges))
+    if not keep.any():
         return empty_triggers(), counts
-    tr = np.empty(len(kept), dtype=TRIGGER_DTYPE)
-    tr["t"] = [t for t, _ in kept]
-    tr["rising"] = [e[0] for _, e in kept]
-    tr["id"] = [e[1] for _, e in kept]
+    kept = codes[keep]
+    tr = np.empty(kept.size, dtype=TRIGGER_DTYPE)
+    tr["t"] = times[keep]
+    tr["rising"] = [edges[c][0] for c in kept.tolist()]
+    tr["id"] = [edges[c][1] for c in kept.tolist()]
     t = tr["t"]
     if (t[1:] < t[:-1]).any():
         tr = tr[np.argsort(t, kind="stable")]
     return tr, counts
+
+
+_OWN_EDGES = {code: EXTERNAL_TRIGGER_TYPES[name] for code, name in
+              _own.TRIGGER_TYPE_NAMES.items() if name in EXTERNAL_TRIGGER_TYPES}
+
+
+def _own_triggers(c: _own.Container) -> tuple[np.ndarray, dict[str, int]]:
+    """External edges and record counts of the trigger stream (own decoder)."""
+    s = c.stream_of_type("TRIG")
+    if s is None:
+        return empty_triggers(), {}
+    codes: list[np.ndarray] = []
+    times: list[np.ndarray] = []
+    for off, sid, data in _own.walk(c, {s.id}):
+        ts, kind = _own.trigger_records(c, off, sid, _own.decompress(c, off, sid, data))
+        times.append(ts)
+        codes.append(kind)
+    if not codes:
+        return empty_triggers(), {}
+    return _edges(np.concatenate(codes), np.concatenate(times), _own.TRIGGER_TYPE_NAMES,
+                  _OWN_EDGES)
+
+
+class _Source:
+    """One file's facts, geometry, triggers and event packets."""
+
+    def __init__(self, p: Path):
+        try:
+            c = _own.open_container(p)
+        except OSError:
+            _require_file(p)  # a missing file or a folder gets its own message
+            raise
+        ev = c.stream_of_type("EVTS")
+        self.facts = {"camera": "" if ev is None or ev.source is None else ev.source,
+                      "streams": [s.name for s in c.streams.values()]}
+        if ev is None:
+            raise ValueError(f"{p}: no event stream; streams found: {self.facts['streams']}")
+        if ev.width is None or ev.height is None:
+            raise ValueError(f"{p}: the event stream gives no resolution")
+        self.p = p
+        self.width, self.height = _check_resolution(p, ev.width, ev.height)
+        self._c = c
+        self._events = ev.id
+
+    def triggers(self) -> tuple[np.ndarray, dict[str, int]]:
+        return _own_triggers(self._c)
+
+    def batches(self) -> Iterator[np.ndarray]:
+        """Each non-empty event packet, as an array of dv's records."""
+        c = self._c
+        for off, sid, data in _own.walk(c, {self._events}):
+            a = _own.event_records(c, off, sid, _own.decompress(c, off, sid, data))
+            if a.shape[0]:
+                yield a
 
 
 def _metadata(p: Path, facts: dict[str, Any], counts: dict[str, int]) -> dict[str, Any]:
@@ -237,11 +216,10 @@ def aedat_info(path: str | os.PathLike[str]) -> dict[str, Any]:
     ``trigger_records`` (every trigger record by type) and the external ``triggers``
     count, without decoding the events."""
     p = _require_file(path)
-    reader, facts = _open(p)
-    width, height = _geometry(p, reader)
-    tr, counts = _read_triggers(p, reader)
-    info = _metadata(p, facts, counts)
-    info.update(width=width, height=height, triggers=int(tr.size))
+    src = _Source(p)
+    tr, counts = src.triggers()
+    info = _metadata(p, src.facts, counts)
+    info.update(width=src.width, height=src.height, triggers=int(tr.size))
     return info
 
 
@@ -260,31 +238,19 @@ def iter_aedat(
     return _iter(p, chunk_events)
 
 
-def _geometry(p: Path, reader: Any) -> tuple[int, int]:
-    try:
-        res = reader.getEventResolution()
-    except Exception as exc:
-        raise ValueError(f"{p}: damaged AEDAT 4.0 header ({_short(exc)})") from exc
-    if res is None:
-        raise ValueError(f"{p}: the event stream gives no resolution")
-    if not (0 < int(res[0]) <= 65536 and 0 < int(res[1]) <= 65536):
-        raise ValueError(f"{p}: the event stream's resolution {int(res[0])}x{int(res[1])} "
+def _check_resolution(p: Path, width: int, height: int) -> tuple[int, int]:
+    if not (0 < width <= 65536 and 0 < height <= 65536):
+        raise ValueError(f"{p}: the event stream's resolution {width}x{height} "
                          "is not a sensor's")
-    return int(res[0]), int(res[1])
+    return width, height
 
 
-def _packets(p: Path, reader: Any) -> Iterator[np.ndarray]:
-    """Each non-empty dv packet as its own EVENT_DTYPE array (pixels checked)."""
-    width, height = _geometry(p, reader)
+def _packets(src: _Source) -> Iterator[np.ndarray]:
+    """Each non-empty event packet as its own EVENT_DTYPE array (pixels checked)."""
+    p, width, height = src.p, src.width, src.height
     seen = 0
-    while True:
-        batch = _next_batch(p, reader)
-        if batch is None:
-            return
-        a = batch.numpy()
+    for a in src.batches():
         m = a.shape[0]
-        if m == 0:
-            continue
         _check_dv_dtype(p, a.dtype)
         out = np.empty(m, dtype=EVENT_DTYPE)
         if not _convert_dv(a, out, 0, width, height):
@@ -294,9 +260,9 @@ def _packets(p: Path, reader: Any) -> Iterator[np.ndarray]:
 
 
 def _iter(p: Path, chunk_events: int | None) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-    reader, _ = _open(p)
-    triggers, _ = _read_triggers(p, reader)
-    paired = _pair_triggers(_packets(p, reader), triggers)
+    src = _Source(p)
+    triggers, _ = src.triggers()
+    paired = _pair_triggers(_packets(src), triggers)
     if chunk_events is not None:
         from asynhdr.io import _rechunk
 
@@ -305,16 +271,11 @@ def _iter(p: Path, chunk_events: int | None) -> Iterator[tuple[np.ndarray, np.nd
     yield from paired
 
 
-def _convert_group(p: Path, group: list[Any], buf: np.ndarray, n: int, width: int,
+def _convert_group(p: Path, group: list[np.ndarray], buf: np.ndarray, n: int, width: int,
                    height: int) -> int:
-    """Copy each of dv's packets ``group`` out (``numpy()``) and convert it into
-    ``buf[n:]`` at once, while the copy is in cache; return the new event count.
-
-    On the calling thread: ``numpy()`` holds the GIL, so a second thread mostly waits
-    for it (sharing the packets between two threads measured slower).
-    """
-    for store in group:
-        a = store.numpy()
+    """Convert each decoded packet of ``group`` into ``buf[n:]``; return the new event
+    count."""
+    for a in group:
         _check_dv_dtype(p, a.dtype)
         if not _convert_dv(a, buf, n, width, height):
             _raise_outside(p, a, n, width, height)
@@ -322,12 +283,11 @@ def _convert_group(p: Path, group: list[Any], buf: np.ndarray, n: int, width: in
     return n
 
 
-def _read_all_events(p: Path, reader: Any, width: int, height: int) -> np.ndarray:
+def _read_all_events(src: _Source) -> np.ndarray:
     """Every event, in one array.
 
-    dv's packets are fetched in groups of about ``_GROUP_EVENTS`` events and kept as
-    dv holds them; each packet is then copied out (``numpy()``) and converted at once,
-    while the copy is still in cache. A file that fits in one group goes straight
+    Packets are decoded in groups of about ``_GROUP_EVENTS`` events, then converted.
+    A file that fits in one group goes straight
     into an array of its exact size. Larger ones go into a buffer with room for
     ``file size / 2`` events (reserved memory that is never written costs nothing),
     doubled when full, then trimmed to the events read: below ``_COPY_TRIM_BYTES`` by a
@@ -335,16 +295,16 @@ def _read_all_events(p: Path, reader: Any, width: int, height: int) -> np.ndarra
     read to the next instead of mapping, and faulting in, fresh pages each time),
     above it in place (``realloc``: no second copy).
     """
+    p, width, height = src.p, src.width, src.height
+    batches = src.batches()
     buf: np.ndarray | None = None
     cap = n = 0
-    group: list[Any] = []
+    group: list[np.ndarray] = []
     pending = 0
     while True:
-        batch = _next_batch(p, reader)
+        batch = next(batches, None)
         if batch is not None:
             m = len(batch)
-            if m == 0:
-                continue
             group.append(batch)
             pending += m
             if pending < _GROUP_EVENTS:
@@ -380,11 +340,11 @@ def read_aedat(path: str | os.PathLike[str]) -> Recording:
     An event outside the resolution raises ``ValueError`` naming the file, the event
     and the bound."""
     p = Path(path)
-    reader, facts = _open(p)
-    width, height = _geometry(p, reader)
-    triggers, counts = _read_triggers(p, reader)
-    events = _read_all_events(p, reader, width, height)
-    meta = _metadata(p, facts, counts)
+    src = _Source(p)
+    triggers, counts = src.triggers()
+    events = _read_all_events(src)
+    meta = _metadata(p, src.facts, counts)
+    width, height = src.width, src.height
     logger.info("%s: AEDAT 4.0 from %s, %dx%d, %d events, %d external trigger edges "
                 "(%d trigger records)", p, meta["camera"], width, height, events.size,
                 triggers.size, sum(counts.values()))
