@@ -7,8 +7,9 @@ Usage::
 
 Figures are events per second, the median of ``--repeat`` samples; a sample repeats
 its operation until it has run for at least 0.2 s (small files decode in ms).
-- aedat4: ``asynhdr.io.aedat.read_aedat`` (events as ``EVENT_DTYPE``, external trigger
-  edges, a ``Recording``) against dv-processing reading the same file with
+- aedat4: ``asynhdr.io.aedat.read_aedat`` (the project's own container decoder: events
+  as ``EVENT_DTYPE``, external trigger edges, a ``Recording``) against dv-processing
+  (iniVation's library, a dev dependency here) reading the same file with
   ``MonoCameraRecording.getNextEventBatch`` + ``.numpy()`` ("dv bare": packets dropped
   as read), the same plus its trigger stream read through ("dv +trig": everything
   ``read_aedat`` decodes), and packets kept and joined into one array ("dv 1 arr",

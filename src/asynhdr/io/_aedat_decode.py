@@ -242,9 +242,12 @@ def open_container(path: str | Path) -> Container:
                      streams=_streams(str(p), header))
 
 
-def walk(c: Container, wanted: set[int]) -> Iterator[tuple[int, int, bytes]]:
+def walk(c: Container, wanted: set[int]) -> Iterator[tuple[int, int, memoryview]]:
     """``(byte offset, stream id, packet data)`` of each packet of the ``wanted``
-    streams, in file order, reading the file in windows (memory flat in file size)."""
+    streams, in file order, reading the file in windows (memory flat in file size).
+
+    The data are a view of the read buffer, valid until the next packet is asked for:
+    :func:`decompress` copies what it keeps."""
     name, size, end = c.name, c.size, c.end
     pos = c.first
     buf = _BUFFERS.get(max(1, min(_WINDOW_BYTES, size)), _BYTE)
@@ -255,7 +258,7 @@ def walk(c: Container, wanted: set[int]) -> Iterator[tuple[int, int, bytes]]:
             at, n, stream, status, nxt = _packets(buf, got, end - pos)
             for a, m, s in zip(at.tolist(), n.tolist(), stream.tolist(), strict=True):
                 if s in wanted:
-                    yield pos + a, s, buf[a + 8 : a + 8 + m].tobytes()
+                    yield pos + a, s, buf.data[a + 8 : a + 8 + m]
             if status == 2:
                 a = pos + int(nxt)
                 sid, m = struct.unpack("<ii", bytes(buf[int(nxt) : int(nxt) + 8]))
@@ -273,8 +276,8 @@ def walk(c: Container, wanted: set[int]) -> Iterator[tuple[int, int, bytes]]:
                 break
 
 
-def decompress(c: Container, offset: int, sid: int, data: bytes) -> bytes:
-    """The decoded packet (a size-prefixed flatbuffer)."""
+def decompress(c: Container, offset: int, sid: int, data: memoryview) -> bytes:
+    """The decoded packet (a size-prefixed flatbuffer), in memory of its own."""
     comp = c.compression
     try:
         if comp in (1, 2):
@@ -289,7 +292,7 @@ def decompress(c: Container, offset: int, sid: int, data: bytes) -> bytes:
         raise ValueError(f"{c.name}: packet at byte {offset} (stream {sid}): its "
                          f"{_COMPRESSION[comp]} data do not decode ({exc}); the file is "
                          "damaged") from None
-    return data
+    return bytes(data)
 
 
 def _vector(c: Container, offset: int, sid: int, raw: bytes, ident: bytes) -> tuple[int, int]:
