@@ -26,9 +26,9 @@ packets are read in file order, so a damaged file data table is never read.
 
 from __future__ import annotations
 
+import html
 import re
 import struct
-import xml.etree.ElementTree as ET
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -188,41 +188,40 @@ class Container:
         return None
 
 
-_XML = re.compile(rb"<dv\b.*</dv>", re.DOTALL)
+_STREAM_NODE = re.compile(rb'<node name="(\d+)" path="[^"]*/outInfo/\1/">')
+_ATTR = re.compile(rb'<attr key="([^"]+)" type="[^"]*">([^<]*)</attr>')
 
 
 def _streams(name: str, header: bytes) -> dict[int, Stream]:
-    """The output streams of the header's XML (``outInfo``: one node per stream id)."""
-    m = _XML.search(header)
-    if m is None:
-        raise ValueError(f"{name}: AEDAT 4.0 header holds no stream description (<dv> XML)")
-    try:
-        root = ET.fromstring(m.group(0).decode("utf-8"))
-    except (UnicodeDecodeError, ET.ParseError) as exc:
-        raise ValueError(f"{name}: damaged AEDAT 4.0 header: its stream description does "
-                         f"not parse ({exc})") from None
+    """The output streams of the header's XML: each ``outInfo/ID/`` node's attributes
+    and those of its ``info`` node (their keys do not overlap), up to the next stream's
+    node. A regular expression, not an XML parser: a third of the time, and a damaged
+    header still gives what it can (a stream it does not describe is not read)."""
+    nodes = list(_STREAM_NODE.finditer(header))
     out: dict[int, Stream] = {}
-    for node in root.iter("node"):
-        if not node.get("path", "").rstrip("/").endswith(f"outInfo/{node.get('name')}"):
-            continue
+    for m, nxt in zip(nodes, [*nodes[1:], None], strict=True):
+        segment = header[m.end() : nxt.start() if nxt is not None else len(header)]
         try:
-            sid = int(node.get("name", ""))
-        except ValueError:
-            continue
-        attrs = {a.get("key"): (a.text or "").strip() for a in node.findall("attr")}
-        info = node.find("node[@name='info']")
-        iattrs = {} if info is None else {a.get("key"): (a.text or "").strip()
-                                          for a in info.findall("attr")}
+            attrs = {k.decode("utf-8"): html.unescape(v.decode("utf-8")).strip()
+                     for k, v in _ATTR.findall(segment)}
+        except UnicodeDecodeError:
+            raise ValueError(f"{name}: damaged AEDAT 4.0 header: the description of stream "
+                             f"{int(m.group(1))} is not text") from None
 
-        def dim(key: str, iattrs: dict[str | None, str] = iattrs) -> int | None:
+        def dim(key: str, attrs: dict[str, str] = attrs) -> int | None:
             try:
-                return int(iattrs[key]) if key in iattrs else None
+                return int(attrs[key]) if key in attrs else None
             except ValueError:
                 return None
 
-        out[sid] = Stream(id=sid, type=attrs.get("typeIdentifier", ""),
-                          name=attrs.get("originalOutputName", str(sid)),
-                          width=dim("sizeX"), height=dim("sizeY"), source=iattrs.get("source"))
+        sid = int(m.group(1))
+        out.setdefault(sid, Stream(id=sid, type=attrs.get("typeIdentifier", ""),
+                                   name=attrs.get("originalOutputName", str(sid)),
+                                   width=dim("sizeX"), height=dim("sizeY"),
+                                   source=attrs.get("source")))
+    if not out:
+        raise ValueError(f"{name}: AEDAT 4.0 header describes no stream (no outInfo nodes "
+                         "in its XML)")
     return out
 
 
@@ -281,57 +280,132 @@ def decompress(c: Container, offset: int, sid: int, data: memoryview) -> bytes:
     comp = c.compression
     try:
         if comp in (1, 2):
-            import lz4.frame
-
-            return bytes(lz4.frame.decompress(data))
+            return _lz4_frame(data)
         if comp in (3, 4):
             import zstandard
 
             return bytes(zstandard.ZstdDecompressor().decompress(data))
-    except Exception as exc:  # lz4: RuntimeError; zstandard: ZstdError
+    except Exception as exc:  # lz4: LZ4BlockError, ValueError; zstandard: ZstdError
         raise ValueError(f"{c.name}: packet at byte {offset} (stream {sid}): its "
                          f"{_COMPRESSION[comp]} data do not decode ({exc}); the file is "
                          "damaged") from None
     return bytes(data)
 
 
-def _vector(c: Container, offset: int, sid: int, raw: bytes, ident: bytes) -> tuple[int, int]:
-    """(position, length) of the vector in the first field of the packet's root table."""
-    n = len(raw)
+_LZ4_MAGIC = 0x184D2204
 
-    def bad(what: str) -> ValueError:
-        return ValueError(f"{c.name}: packet at byte {offset} (stream {sid}, "
-                          f"{ident.decode()}): {what}; the file is damaged")
 
+def _lz4_frame(data: memoryview) -> bytes:
+    """Decode one LZ4 frame (the format's version 1) block by block with
+    ``lz4.block``: a quarter faster than ``lz4.frame`` on dv's packets, whose frames
+    give no content size (``lz4.frame`` then grows its output as it goes). Linked
+    blocks get the block before as their dictionary (a block holds at most the 64 KB a
+    match may reach back). ``ValueError`` on any inconsistency; checksums, when the
+    frame has them, are skipped."""
+    import lz4.block
+
+    n = len(data)
+    if n < 7:
+        raise ValueError(f"an LZ4 frame needs 7 bytes or more, the packet has {n}")
+    magic, flg, bd = struct.unpack_from("<IBB", data, 0)
+    if magic != _LZ4_MAGIC:
+        raise ValueError("not an LZ4 frame (bad magic number)")
+    if (flg >> 6) != 1 or (flg & 2) or (bd & 0x8F) or ((bd >> 4) & 7) < 4:
+        raise ValueError("bad LZ4 frame descriptor")
+    pos = 6 + (8 if flg & 8 else 0) + (4 if flg & 1 else 0) + 1
+    block_max = 1 << (8 + 2 * ((bd >> 4) & 7))
+    linked = not flg & 32
+    skip = 4 if flg & 16 else 0
+    parts: list[bytes] = []
+    while True:
+        if pos + 4 > n:
+            raise ValueError("LZ4 frame cut short")
+        (bs,) = struct.unpack_from("<I", data, pos)
+        pos += 4
+        if bs == 0:
+            break
+        size = bs & 0x7FFFFFFF
+        if size > block_max or pos + size > n:
+            raise ValueError("LZ4 block size beyond the frame's maximum or the packet")
+        if bs & 0x80000000:
+            parts.append(bytes(data[pos : pos + size]))
+        elif linked and parts:
+            parts.append(lz4.block.decompress(data[pos : pos + size],
+                                              uncompressed_size=block_max, dict=parts[-1]))
+        else:
+            parts.append(lz4.block.decompress(data[pos : pos + size],
+                                              uncompressed_size=block_max))
+        pos += size + skip
+    if flg & 4:
+        pos += 4
+    if pos > n:
+        raise ValueError("LZ4 frame cut short")
+    out = parts[0] if len(parts) == 1 else b"".join(parts)
+    if flg & 8:
+        (content,) = struct.unpack_from("<Q", data, 6)
+        if content != len(out):
+            raise ValueError(f"LZ4 content size {content} does not match the {len(out)} "
+                             "bytes decoded")
+    return out
+
+
+_FB_PROBLEMS = {
+    1: "too few decoded bytes for a packet",
+    2: "its size prefix does not match its decoded size",
+    3: "its type identifier is not the stream's",
+    4: "its root table lies outside the packet",
+    5: "its table layout (vtable) lies outside the packet",
+    6: "its element vector lies outside the packet",
+}
+
+
+@numba.njit(cache=True, nogil=True)
+def _fb_vector(raw, ident):  # pragma: no cover - compiled
+    """(problem code or 0, position, length) of the vector in the first field of a
+    size-prefixed flatbuffer's root table whose identifier is ``ident``."""
+    n = raw.shape[0]
     if n < 12:
-        raise bad(f"{n} decoded bytes are too few for a packet")
-    (prefix,) = struct.unpack_from("<I", raw, 0)
-    if prefix != n - 4:
-        raise bad(f"its size prefix says {prefix} bytes, {n - 4} follow")
-    if raw[8:12] != ident:
-        raise bad(f"its type is {raw[8:12]!r}, expected {ident!r}")
-    (root,) = struct.unpack_from("<I", raw, 4)
-    root += 4
+        return 1, 0, 0
+    if _u32(raw, 0) != n - 4:
+        return 2, 0, 0
+    if _u32(raw, 8) != ident:
+        return 3, 0, 0
+    root = 4 + _u32(raw, 4)
     if root + 4 > n:
-        raise bad("its root table lies outside the packet")
-    (back,) = struct.unpack_from("<i", raw, root)
+        return 4, 0, 0
+    back = _u32(raw, root)
+    if back >= 1 << 31:
+        back -= np.int64(1) << 32
     vt = root - back
     if vt < 4 or vt + 4 > n:
-        raise bad("its table layout (vtable) lies outside the packet")
-    vsize, _ = struct.unpack_from("<HH", raw, vt)
+        return 5, 0, 0
+    vsize = np.int64(raw[vt]) | (np.int64(raw[vt + 1]) << 8)
     if vt + vsize > n:
-        raise bad("its table layout (vtable) runs past the packet")
-    f0 = struct.unpack_from("<H", raw, vt + 4)[0] if vsize >= 6 else 0
+        return 5, 0, 0
+    f0 = np.int64(0)
+    if vsize >= 6:
+        f0 = np.int64(raw[vt + 4]) | (np.int64(raw[vt + 5]) << 8)
     if f0 == 0:
-        return 0, 0  # no elements
+        return 0, 0, 0  # no elements
     at = root + f0
     if at + 4 > n:
-        raise bad("its element vector's offset lies outside the packet")
-    vec = at + struct.unpack_from("<I", raw, at)[0]
+        return 6, 0, 0
+    vec = at + _u32(raw, at)
     if vec + 4 > n:
-        raise bad("its element vector lies outside the packet")
-    (count,) = struct.unpack_from("<I", raw, vec)
-    return vec + 4, count
+        return 6, 0, 0
+    return 0, vec + 4, _u32(raw, vec)
+
+
+_IDENT = {b"EVTS": struct.unpack("<I", b"EVTS")[0], b"TRIG": struct.unpack("<I", b"TRIG")[0]}
+
+
+def _vector(c: Container, offset: int, sid: int, raw: bytes, ident: bytes) -> tuple[int, int]:
+    """(position, length) of the vector in the first field of the packet's root table."""
+    code, start, count = _fb_vector(np.frombuffer(raw, dtype=np.uint8), _IDENT[ident])
+    if code:
+        raise ValueError(f"{c.name}: packet at byte {offset} (stream {sid}, "
+                         f"{ident.decode()}): {_FB_PROBLEMS[code]}; the file is damaged")
+    return int(start), int(count)
 
 
 def event_records(c: Container, offset: int, sid: int, raw: bytes) -> np.ndarray:

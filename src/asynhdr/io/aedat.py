@@ -125,31 +125,34 @@ def _raise_outside(p: Path, a: np.ndarray, start: int, width: int, height: int) 
                      "event stream's resolution")
 
 
-def _edges(codes: np.ndarray, times: np.ndarray, names: dict[int, str],
-           edges: dict[int, tuple[bool, int]]) -> tuple[np.ndarray, dict[str, int]]:
-    """Trigger records (type codes, timestamps) -> external edges as TRIGGER_DTYPE
-    (sorted by time, stably) and the count of every record by type name."""
-    counts: dict[str, int] = {}
-    kinds, n_kind = np.unique(codes, return_counts=True)
-    for code, k in zip(kinds.tolist(), n_kind.tolist(), strict=True):
-        name = names.get(code, f"TRIGGER_TYPE_{code}")
-        counts[name] = counts.get(name, 0) + k
-    keep = np.isin(codes, list(edges))
+def _edges(codes: np.ndarray, times: np.ndarray) -> tuple[np.ndarray, dict[str, int]]:
+    """Trigger records (type codes 0-255, timestamps) -> external edges as
+    TRIGGER_DTYPE (sorted by time, stably) and the count of every record by type name."""
+    per_code = np.bincount(codes, minlength=256)
+    counts = {_own.TRIGGER_TYPE_NAMES.get(code, f"TRIGGER_TYPE_{code}"): int(per_code[code])
+              for code in np.flatnonzero(per_code).tolist()}
+    keep = _EDGE_KEEP[codes]
     if not keep.any():
         return empty_triggers(), counts
     kept = codes[keep]
     tr = np.empty(kept.size, dtype=TRIGGER_DTYPE)
     tr["t"] = times[keep]
-    tr["rising"] = [edges[c][0] for c in kept.tolist()]
-    tr["id"] = [edges[c][1] for c in kept.tolist()]
+    tr["rising"] = _EDGE_RISING[kept]
+    tr["id"] = _EDGE_ID[kept]
     t = tr["t"]
     if (t[1:] < t[:-1]).any():
         tr = tr[np.argsort(t, kind="stable")]
     return tr, counts
 
 
-_OWN_EDGES = {code: EXTERNAL_TRIGGER_TYPES[name] for code, name in
-              _own.TRIGGER_TYPE_NAMES.items() if name in EXTERNAL_TRIGGER_TYPES}
+# Type code -> whether it is an external edge, and the edge's (rising, id).
+_EDGE_KEEP = np.zeros(256, dtype=bool)
+_EDGE_RISING = np.zeros(256, dtype=bool)
+_EDGE_ID = np.zeros(256, dtype=np.uint8)
+for _code, _name in _own.TRIGGER_TYPE_NAMES.items():
+    if _name in EXTERNAL_TRIGGER_TYPES:
+        _EDGE_KEEP[_code] = True
+        _EDGE_RISING[_code], _EDGE_ID[_code] = EXTERNAL_TRIGGER_TYPES[_name]
 
 
 def _own_triggers(c: _own.Container) -> tuple[np.ndarray, dict[str, int]]:
@@ -168,8 +171,7 @@ def _trigger_edges(records: list[tuple[np.ndarray, np.ndarray]]
     if not records:
         return empty_triggers(), {}
     return _edges(np.concatenate([k for _, k in records]),
-                  np.concatenate([t for t, _ in records]), _own.TRIGGER_TYPE_NAMES,
-                  _OWN_EDGES)
+                  np.concatenate([t for t, _ in records]))
 
 
 class _Source:
