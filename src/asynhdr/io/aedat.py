@@ -1,7 +1,7 @@
 """iniVation AEDAT 4.0 recordings (``.aedat4``).
 
 The container is walked and its event and trigger packets decoded here
-(:mod:`asynhdr.io._aedat_decode`: LZ4 by python-lz4, Zstd by zstandard, dv's
+(:mod:`asynhdr.io._aedat_decode`: LZ4 and Zstd by cramjam into reused memory, dv's
 flatbuffers parsed with every offset checked), window by window: memory stays flat in
 file size, and damaged data raise a ``ValueError`` naming the file and the packet.
 dv-processing, iniVation's library, reads the same files to the same result (the tests
@@ -47,6 +47,7 @@ from typing import Any
 import numba
 import numpy as np
 
+from asynhdr._recycle import Recycler
 from asynhdr.events import EVENT_DTYPE, TRIGGER_DTYPE, Recording, empty_triggers
 from asynhdr.io import _aedat_decode as _own
 from asynhdr.io import _pair_triggers, _require_file
@@ -68,9 +69,8 @@ EXTERNAL_TRIGGER_TYPES: dict[str, tuple[bool, int]] = {
 _DV_FIELDS = ("timestamp", "x", "y", "polarity")
 _MAX_INITIAL_EVENTS = 1 << 24  # 218 MB of EVENT_DTYPE reserved at most before it grows
 _COPY_TRIM_BYTES = 32 << 20  # glibc's largest heap-served block (DEFAULT_MMAP_THRESHOLD_MAX)
-# Events of decoded packets held before converting (1 MB): more, held at once, make the
-# heap grow and shrink on every read (measured: 830 page faults per 1 MB file).
-_GROUP_EVENTS = 1 << 16
+# Events of decoded packets held (in the arena) before converting: 8 MB.
+_GROUP_EVENTS = 1 << 19
 
 
 @numba.njit(cache=True, nogil=True)
@@ -160,9 +160,49 @@ def _own_triggers(c: _own.Container) -> tuple[np.ndarray, dict[str, int]]:
     s = c.stream_of_type("TRIG")
     if s is None:
         return empty_triggers(), {}
-    records = [_own.trigger_records(c, off, sid, _own.decompress(c, off, sid, data))
+    arena = _Arena()
+    records = [_own.trigger_records(c, off, sid, arena.decode(c, off, sid, data, reuse=True))
                for off, sid, data in _own.walk(c, {s.id})]
     return _trigger_edges(records)
+
+
+# Decoding memory, reused from one packet and one read to the next (memory written
+# before costs no page faults to write again).
+_ARENA_BYTES = 16 << 20
+_ARENAS = Recycler(keep=2, max_bytes=_ARENA_BYTES)
+_BYTE = np.dtype(np.uint8)
+
+
+class _Arena:
+    """Packets decoded one after another into reused memory; :meth:`release` says that
+    nothing decoded so far is needed any more, and the next packet starts again at the
+    beginning. A packet that does not fit gets fresh memory (what was decoded before
+    stays valid)."""
+
+    def __init__(self) -> None:
+        self.buf = _ARENAS.get(_ARENA_BYTES, _BYTE)
+        self.at = 0
+
+    def release(self) -> None:
+        self.at = 0
+
+    def decode(self, c: _own.Container, off: int, sid: int, data: memoryview,
+               reuse: bool = False) -> np.ndarray:
+        """The packet's decoded bytes (a view of the arena). ``reuse``: the bytes are not
+        needed once the next packet is asked for."""
+        need = _own.decoded_bound(c, off, sid, data)
+        if self.at + need > self.buf.shape[0]:
+            # Packets decoded before stay where they are (their views keep that memory).
+            if need <= _ARENA_BYTES:
+                self.buf = _ARENAS.get(_ARENA_BYTES, _BYTE)
+            else:
+                self.buf = np.empty(need, dtype=np.uint8)
+            self.at = 0
+        at = self.at
+        n = _own.decode_into(c, off, sid, data, self.buf[at : at + need])
+        if not reuse:
+            self.at = at + ((n + 15) & ~15)  # the next packet 16-byte aligned
+        return self.buf[at : at + n]
 
 
 def _trigger_edges(records: list[tuple[np.ndarray, np.ndarray]]
@@ -198,23 +238,23 @@ class _Source:
     def triggers(self) -> tuple[np.ndarray, dict[str, int]]:
         return _own_triggers(self._c)
 
-    def batches(self, triggers: list[tuple[np.ndarray, np.ndarray]] | None = None
+    def batches(self, arena: _Arena, triggers: list[tuple[np.ndarray, np.ndarray]] | None = None
                 ) -> Iterator[np.ndarray]:
-        """Each non-empty event packet, as an array of dv's records; with ``triggers``,
-        the trigger packets' (timestamps, type codes) are appended to it on the way
-        (one pass over the file)."""
+        """Each non-empty event packet, as an array of dv's records in ``arena`` (valid
+        until the arena is released); with ``triggers``, the trigger packets' (timestamps,
+        type codes) are appended to it on the way (one pass over the file)."""
         c = self._c
         wanted = {self._events}
         trig = c.stream_of_type("TRIG")
         if triggers is not None and trig is not None:
             wanted.add(trig.id)
         for off, sid, data in _own.walk(c, wanted):
-            raw = _own.decompress(c, off, sid, data)
             if sid != self._events:
                 assert triggers is not None
+                raw = arena.decode(c, off, sid, data, reuse=True)
                 triggers.append(_own.trigger_records(c, off, sid, raw))
                 continue
-            a = _own.event_records(c, off, sid, raw)
+            a = _own.event_records(c, off, sid, arena.decode(c, off, sid, data))
             if a.shape[0]:
                 yield a
 
@@ -268,12 +308,14 @@ def _packets(src: _Source) -> Iterator[np.ndarray]:
     """Each non-empty event packet as its own EVENT_DTYPE array (pixels checked)."""
     p, width, height = src.p, src.width, src.height
     seen = 0
-    for a in src.batches():
+    arena = _Arena()
+    for a in src.batches(arena):
         m = a.shape[0]
         _check_dv_dtype(p, a.dtype)
         out = np.empty(m, dtype=EVENT_DTYPE)
         if not _convert_dv(a, out, 0, width, height):
             _raise_outside(p, a, seen, width, height)
+        arena.release()
         seen += m
         yield out
 
@@ -316,7 +358,8 @@ def _read_all_events(src: _Source, triggers: list[tuple[np.ndarray, np.ndarray]]
     above it in place (``realloc``: no second copy).
     """
     p, width, height = src.p, src.width, src.height
-    batches = src.batches(triggers)
+    arena = _Arena()
+    batches = src.batches(arena, triggers)
     buf: np.ndarray | None = None
     cap = n = 0
     group: list[np.ndarray] = []
@@ -339,6 +382,7 @@ def _read_all_events(src: _Source, triggers: list[tuple[np.ndarray, np.ndarray]]
                 buf.resize(cap, refcheck=False)  # the only reference is ours
             n = _convert_group(p, group, buf, n, width, height)
             group, pending = [], 0
+            arena.release()
         if batch is None:
             break
     if buf is None:
