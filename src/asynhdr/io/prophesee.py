@@ -389,7 +389,7 @@ class _RawInfo:
         self.path = Path(path)
         self.name = str(path)
         try:
-            f = open(self.path, "rb")
+            f = open(self.path, "rb", buffering=0)
         except FileNotFoundError:
             raise FileNotFoundError(f"{self.name}: no such file") from None
         except OSError as exc:
@@ -905,7 +905,7 @@ def read_raw(
     """
     info = _RawInfo(path, width, height)
     _warn_trailing(info)
-    with open(info.path, "rb") as f:
+    with open(info.path, "rb", buffering=0) as f:
         f.seek(info.header_bytes)
         raw = np.fromfile(f, dtype=np.uint8, count=info.n_words * info.word_bytes)
     if raw.size != info.n_words * info.word_bytes:
@@ -1041,7 +1041,7 @@ def _iter_chunks(
     block_array = _BLOCKS.get(max(8, min(block_bytes, payload_left)), _BYTE)
     block_view = block_array.data
     words_before = 0  # words of the payload decoded before this block
-    with open(info.path, "rb") as f:
+    with open(info.path, "rb", buffering=0) as f:
         f.seek(info.header_bytes)
         while payload_left > 0:
             want = min(block_bytes, payload_left)
