@@ -1019,3 +1019,18 @@ def test_aedat4_reads_in_windows_of_any_size(fuzz_dir: Path,
         monkeypatch.setattr(_aedat_decode, "_BUFFERS", _aedat_decode.Recycler(keep=2,
                                                                              max_bytes=window))
         assert outcomes() == reference
+
+
+def test_aedat4_file_cut_while_being_read(fuzz_dir: Path) -> None:
+    """A file that shrinks between its header's read and its packets' read gives a
+    ValueError naming it, not a loop waiting for bytes that never come."""
+    from asynhdr.io import _aedat_decode
+
+    path = fuzz_dir / "shrinking.aedat4"
+    good = _aedat4_template(fuzz_dir)
+    path.write_bytes(good)
+    c = _aedat_decode.open_container(path)
+    path.write_bytes(good[: len(good) // 2])
+    with pytest.raises(ValueError, match=rf"shrinking\.aedat4: file ended at byte "
+                                         rf"{len(good) // 2} while reading, {len(good)} bytes"):
+        list(_aedat_decode.walk(c, {0}))

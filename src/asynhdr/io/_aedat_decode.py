@@ -246,15 +246,19 @@ def walk(c: Container, wanted: set[int]) -> Iterator[tuple[int, int, memoryview]
     """``(byte offset, stream id, packet data)`` of each packet of the ``wanted``
     streams, in file order, reading the file in windows (memory flat in file size).
 
-    The data are a view of the read buffer, valid until the next packet is asked for:
-    :func:`decompress` copies what it keeps."""
+    The data are a view of the read buffer, valid until the next packet is asked for
+    (:func:`decode_into` writes what it decodes elsewhere)."""
     name, size, end = c.name, c.size, c.end
     pos = c.first
     buf = _BUFFERS.get(max(1, min(_WINDOW_BYTES, size)), _BYTE)
     with open(c.path, "rb") as f:
         while pos < end:
             f.seek(pos)
-            got = f.readinto(buf.data[: min(buf.size, size - pos)])
+            want = min(buf.size, size - pos)
+            got = f.readinto(buf.data[:want])
+            if got < want:  # the file is shorter than when it was opened
+                raise ValueError(f"{name}: file ended at byte {pos + got} while reading, "
+                                 f"{size} bytes expected (was it cut while being read?)")
             at, n, stream, status, nxt = _packets(buf, got, end - pos)
             for a, m, s in zip(at.tolist(), n.tolist(), stream.tolist(), strict=True):
                 if s in wanted:
