@@ -66,6 +66,22 @@ def manifest_events(ev: np.ndarray, i: int) -> list[int]:
     return [int(e["t"]), int(e["x"]), int(e["y"]), 1 if int(e["p"]) > 0 else 0]
 
 
+def dv_writer(path: Path, *, compression: str = "LZ4", size: tuple[int, int] = (32, 24),
+              triggers: bool = True, imu: bool = False, camera: str = "TESTCAM") -> Any:
+    """dv-processing's AEDAT 4.0 writer for ``path`` (the file is closed when the writer
+    is deleted)."""
+    import dv_processing as dv
+
+    cfg = dv.io.MonoCameraWriter.Config(camera)
+    cfg.compression = getattr(dv.CompressionType, compression)
+    cfg.addEventStream(size)
+    if imu:
+        cfg.addImuStream()
+    if triggers:
+        cfg.addTriggerStream()
+    return dv.io.MonoCameraWriter(str(path), cfg)
+
+
 def dv_reference(path: Path) -> dict[str, Any]:
     """What dv-processing, iniVation's library, reads from an AEDAT 4.0 file: events as
     EVENT_DTYPE, trigger records (type name, timestamp), camera, streams, resolution."""
@@ -75,8 +91,11 @@ def dv_reference(path: Path) -> dict[str, Any]:
     parts = []
     while (batch := r.getNextEventBatch()) is not None:
         parts.append(batch.numpy())
-    a = np.concatenate(parts) if parts else np.zeros(0, parts[0].dtype)
-    ev = make_events(a["x"], a["y"], np.where(a["polarity"], 1, -1), a["timestamp"])
+    if not parts:
+        ev = make_events([], [], [], [])
+    else:
+        a = np.concatenate(parts)
+        ev = make_events(a["x"], a["y"], np.where(a["polarity"], 1, -1), a["timestamp"])
     records = []
     if r.isTriggerStreamAvailable():
         while (tb := r.getNextTriggerBatch()) is not None:
@@ -166,11 +185,7 @@ def test_aedat4_info_counts_trigger_records(data_dir: Path, manifest: dict[str, 
 def test_aedat4_external_triggers_and_compression(tmp_path: Path, compression: str) -> None:
     dv = pytest.importorskip("dv_processing")
     path = tmp_path / f"ext_{compression}.aedat4"
-    cfg = dv.io.MonoCameraWriter.Config("TESTCAM")
-    cfg.compression = getattr(dv.CompressionType, compression)
-    cfg.addEventStream((32, 24))
-    cfg.addTriggerStream()
-    writer = dv.io.MonoCameraWriter(str(path), cfg)
+    writer = dv_writer(path, compression=compression)
     store = dv.EventStore()
     ts = [1_000 + 10 * i for i in range(40)]
     for i, t in enumerate(ts):
@@ -207,12 +222,8 @@ def test_aedat4_every_compression_equals_dv_processing(tmp_path: Path, compressi
     IMU and trigger streams beside the events: read as dv-processing reads them."""
     dv = pytest.importorskip("dv_processing")
     path = tmp_path / f"c_{compression}.aedat4"
-    cfg = dv.io.MonoCameraWriter.Config("CAM_" + compression)
-    cfg.compression = getattr(dv.CompressionType, compression)
-    cfg.addEventStream((640, 480))
-    cfg.addImuStream()
-    cfg.addTriggerStream()
-    writer = dv.io.MonoCameraWriter(str(path), cfg)
+    writer = dv_writer(path, compression=compression, size=(640, 480), imu=True,
+                       camera="CAM_" + compression)
     rng = np.random.default_rng(3)
     kinds = list(dv.TriggerType.__members__.values())
     t = 1_700_000_000_000_000
@@ -240,10 +251,7 @@ def write_aedat4_packets(path: Path, packets: list[list[tuple[int, int, int, boo
     """An AEDAT 4.0 file (Zstd) with one event packet per list of (t, x, y, on)."""
     import dv_processing as dv
 
-    cfg = dv.io.MonoCameraWriter.Config("TESTCAM")
-    cfg.compression = dv.CompressionType.ZSTD
-    cfg.addEventStream(size)
-    writer = dv.io.MonoCameraWriter(str(path), cfg)
+    writer = dv_writer(path, compression="ZSTD", size=size, triggers=False)
     for packet in packets:
         store = dv.EventStore()
         for t, x, y, on in packet:
@@ -775,11 +783,7 @@ def _aedat4_template(folder: Path, compression: str = "LZ4") -> bytes:
     if key not in _TEMPLATES:
         dv = pytest.importorskip("dv_processing")
         path = folder / f"template_{compression}.aedat4"
-        cfg = dv.io.MonoCameraWriter.Config("TESTCAM")
-        cfg.compression = getattr(dv.CompressionType, compression)
-        cfg.addEventStream((64, 48))
-        cfg.addTriggerStream()
-        writer = dv.io.MonoCameraWriter(str(path), cfg)
+        writer = dv_writer(path, compression=compression, size=(64, 48))
         rng = np.random.default_rng(4)
         for k in range(12):
             store = dv.EventStore()
