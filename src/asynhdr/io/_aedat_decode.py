@@ -508,12 +508,10 @@ def _trigger_tables(raw, start, count):  # pragma: no cover - compiled
         at = start + 4 * i
         if at + 4 > n:
             return ts, kind, at
-        tab = at + (np.int64(raw[at]) | (np.int64(raw[at + 1]) << 8)
-                    | (np.int64(raw[at + 2]) << 16) | (np.int64(raw[at + 3]) << 24))
+        tab = at + _u32(raw, at)
         if tab + 4 > n:
             return ts, kind, at
-        back = (np.int64(raw[tab]) | (np.int64(raw[tab + 1]) << 8)
-                | (np.int64(raw[tab + 2]) << 16) | (np.int64(raw[tab + 3]) << 24))
+        back = _u32(raw, tab)
         if back >= 1 << 31:
             back -= np.int64(1) << 32
         vt = tab - back

@@ -66,7 +66,6 @@ EXTERNAL_TRIGGER_TYPES: dict[str, tuple[bool, int]] = {
 """AEDAT trigger type name -> (rising, id) of the edge it becomes."""
 
 
-_DV_FIELDS = ("timestamp", "x", "y", "polarity")
 _MAX_INITIAL_EVENTS = 1 << 24  # 218 MB of EVENT_DTYPE reserved at most before it grows
 _COPY_TRIM_BYTES = 32 << 20  # glibc's largest heap-served block (DEFAULT_MMAP_THRESHOLD_MAX)
 # Events of decoded packets held (in the arena) before converting: 8 MB.
@@ -101,15 +100,6 @@ def _convert_dv(src, dst, start, width, height):  # pragma: no cover - compiled
         d.t = s.timestamp
         i += np.uint64(1)
     return x_max < width and y_max < height
-
-
-def _check_dv_dtype(p: Path, dt: np.dtype) -> None:
-    names = dt.names
-    if names is None or any(f not in names for f in _DV_FIELDS):
-        raise ValueError(
-            f"{p}: event packet records with fields {names}; "
-            f"expected {', '.join(_DV_FIELDS)}"
-        )
 
 
 def _raise_outside(p: Path, a: np.ndarray, start: int, width: int, height: int) -> None:
@@ -311,7 +301,6 @@ def _packets(src: _Source) -> Iterator[np.ndarray]:
     arena = _Arena()
     for a in src.batches(arena):
         m = a.shape[0]
-        _check_dv_dtype(p, a.dtype)
         out = np.empty(m, dtype=EVENT_DTYPE)
         if not _convert_dv(a, out, 0, width, height):
             _raise_outside(p, a, seen, width, height)
@@ -337,7 +326,6 @@ def _convert_group(p: Path, group: list[np.ndarray], buf: np.ndarray, n: int, wi
     """Convert each decoded packet of ``group`` into ``buf[n:]``; return the new event
     count."""
     for a in group:
-        _check_dv_dtype(p, a.dtype)
         if not _convert_dv(a, buf, n, width, height):
             _raise_outside(p, a, n, width, height)
         n += a.shape[0]
