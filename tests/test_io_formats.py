@@ -987,13 +987,9 @@ def test_cli_info_errors(tmp_path: Path) -> None:
     assert "absent.npz" in res.output
 
 
-def test_aedat4_reads_in_windows_of_any_size(fuzz_dir: Path,
-                                             monkeypatch: pytest.MonkeyPatch) -> None:
-    """The reader reads the file a window at a time (packets larger than a window make
-    it grow): results and errors do not depend on the window's size."""
-    from asynhdr.io import _aedat_decode
-
-    good = _aedat4_template(fuzz_dir)
+def _aedat4_variants(fuzz_dir: Path, compression: str = "LZ4") -> list[bytes]:
+    """The template, cut twice, and with a byte changed in twelve places."""
+    good = _aedat4_template(fuzz_dir, compression)
     rng = np.random.default_rng(12)
     variants = [good, good[: len(good) - 3], good[: len(good) // 2]]
     for _ in range(12):
@@ -1001,20 +997,31 @@ def test_aedat4_reads_in_windows_of_any_size(fuzz_dir: Path,
         i = int(rng.integers(100, len(b)))
         b[i] ^= int(rng.integers(1, 256))
         variants.append(bytes(b))
+    return variants
 
-    def outcomes() -> list[Any]:
-        out: list[Any] = []
-        for k, data in enumerate(variants):
-            path = fuzz_dir / f"window_{k}.aedat4"
-            path.write_bytes(data)
-            try:
-                rec = open_recording(path)
-                out.append((rec.events.tobytes(), rec.triggers.tobytes()))
-            except ValueError as exc:
-                out.append(str(exc))
-        return out
 
-    reference = outcomes()
+def _aedat4_outcomes(fuzz_dir: Path, variants: list[bytes]) -> list[Any]:
+    """Each file's (events, triggers) bytes, or its error message."""
+    out: list[Any] = []
+    for k, data in enumerate(variants):
+        path = fuzz_dir / f"variant_{k}.aedat4"
+        path.write_bytes(data)
+        try:
+            rec = open_recording(path)
+            out.append((rec.events.tobytes(), rec.triggers.tobytes()))
+        except ValueError as exc:
+            out.append(str(exc))
+    return out
+
+
+def test_aedat4_reads_in_windows_of_any_size(fuzz_dir: Path,
+                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    """The reader reads the file a window at a time (packets larger than a window make
+    it grow): results and errors do not depend on the window's size."""
+    from asynhdr.io import _aedat_decode
+
+    variants = _aedat4_variants(fuzz_dir)
+    reference = _aedat4_outcomes(fuzz_dir, variants)
     assert isinstance(reference[0], tuple)
     assert reference[1] == reference[0]  # cut inside the file data table: packets whole
     assert "claims 3455 bytes; the data end at byte" in str(reference[2])
@@ -1022,7 +1029,31 @@ def test_aedat4_reads_in_windows_of_any_size(fuzz_dir: Path,
         monkeypatch.setattr(_aedat_decode, "_WINDOW_BYTES", window)
         monkeypatch.setattr(_aedat_decode, "_BUFFERS", _aedat_decode.Recycler(keep=2,
                                                                              max_bytes=window))
-        assert outcomes() == reference
+        assert _aedat4_outcomes(fuzz_dir, variants) == reference
+
+
+@pytest.mark.parametrize("compression", ["LZ4", "NONE", "ZSTD"])
+def test_aedat4_threads_and_batches_do_not_change_results(
+        fuzz_dir: Path, monkeypatch: pytest.MonkeyPatch, compression: str) -> None:
+    """Packets decoded on one thread or spread over three, in batches of one packet or
+    of all, give the same events, triggers and errors (the first damaged packet in file
+    order is the one named), and the same as dv-processing where the file is whole. The
+    reader converts its packets in groups of 1,000 events here (two or three packets),
+    so that it frees decoded packets while a batch is being yielded."""
+    from asynhdr import _pool
+    from asynhdr.io import _aedat_decode, aedat
+
+    variants = _aedat4_variants(fuzz_dir, compression)
+    monkeypatch.setattr(_pool, "worker_threads", lambda: 1)
+    reference = _aedat4_outcomes(fuzz_dir, variants)
+    assert sum(isinstance(r, str) for r in reference) >= 2  # damage is reported
+    monkeypatch.setattr(_pool, "worker_threads", lambda: 3)
+    monkeypatch.setattr(_aedat_decode, "_PARALLEL_MIN_BYTES", 0)
+    monkeypatch.setattr(aedat, "_GROUP_EVENTS", 1_000)
+    for batch in (1, 20_000, 150_000, 1 << 30):
+        monkeypatch.setattr(_aedat_decode, "_BATCH_BYTES", batch)
+        assert _aedat4_outcomes(fuzz_dir, variants) == reference
+        assert_same_as_dv(fuzz_dir / f"template_{compression}.aedat4")
 
 
 def test_aedat4_file_cut_while_being_read(fuzz_dir: Path) -> None:

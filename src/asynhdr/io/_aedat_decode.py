@@ -8,9 +8,11 @@ The container, as the AEDAT 4.0 layout describes it:
 - the file data table (an index, not needed to read the packets in order);
 
 is walked window by window, so memory stays flat in file size. Each packet of a wanted
-stream is decoded (LZ4 and Zstd by cramjam, or stored as is) into memory the caller
-reuses (no allocation per packet), after its frame layout gives a bound on its decoded
-size, and parsed as the size-prefixed flatbuffer dv writes:
+stream is decoded (LZ4 and Zstd by cramjam, or stored as is) into reused memory (no
+allocation per packet), after its frame layout gives a bound on its decoded size; the
+packets of a window are decoded in batches spread over the process's decoding threads
+(cramjam releases the GIL) and yielded in file order. Each is parsed as the
+size-prefixed flatbuffer dv writes:
 
 - ``EVTS``: a table whose first field is a vector of 16-byte ``Event`` structs
   (int64 timestamp, int16 x, int16 y, bool polarity, 3 bytes of padding), returned as a
@@ -33,11 +35,12 @@ import struct
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import BinaryIO
+from typing import Any, BinaryIO
 
 import numba
 import numpy as np
 
+from asynhdr import _pool
 from asynhdr._recycle import Recycler
 
 __all__ = ["DV_EVENT_DTYPE", "TRIGGER_TYPE_NAMES", "Container", "open_container"]
@@ -242,16 +245,20 @@ def open_container(path: str | Path) -> Container:
                      streams=_streams(str(p), header))
 
 
-def walk(c: Container, wanted: set[int]) -> Iterator[tuple[int, int, memoryview]]:
-    """``(byte offset, stream id, packet data)`` of each packet of the ``wanted``
-    streams, in file order, reading the file in windows (memory flat in file size).
+Window = tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
-    The data are a view of the read buffer, valid until the next packet is asked for
-    (:func:`decode_into` writes what it decodes elsewhere)."""
+
+def _windows(c: Container) -> Iterator[Window]:
+    """The file read window by window from the first packet on (memory flat in file
+    size): ``(file offset of the window, its bytes, and the positions in it, sizes and
+    stream ids of the packets lying wholly in it)``. The window's bytes are valid until
+    the next window is asked for; a packet larger than the window makes it grow. A
+    packet header that does not fit, or a file cut short, raises ``ValueError`` once the
+    packets before it are yielded."""
     name, size, end = c.name, c.size, c.end
     pos = c.first
     buf = _BUFFERS.get(max(1, min(_WINDOW_BYTES, size)), _BYTE)
-    with open(c.path, "rb") as f:
+    with open(c.path, "rb", buffering=0) as f:
         while pos < end:
             f.seek(pos)
             want = min(buf.size, size - pos)
@@ -260,9 +267,8 @@ def walk(c: Container, wanted: set[int]) -> Iterator[tuple[int, int, memoryview]
                 raise ValueError(f"{name}: file ended at byte {pos + got} while reading, "
                                  f"{size} bytes expected (was it cut while being read?)")
             at, n, stream, status, nxt = _packets(buf, got, end - pos)
-            for a, m, s in zip(at.tolist(), n.tolist(), stream.tolist(), strict=True):
-                if s in wanted:
-                    yield pos + a, s, buf.data[a + 8 : a + 8 + m]
+            if at.shape[0]:
+                yield pos, buf, at, n, stream
             if status == 2:
                 a = pos + int(nxt)
                 sid, m = struct.unpack("<ii", bytes(buf[int(nxt) : int(nxt) + 8]))
@@ -280,132 +286,320 @@ def walk(c: Container, wanted: set[int]) -> Iterator[tuple[int, int, memoryview]
                 break
 
 
+def walk(c: Container, wanted: set[int]) -> Iterator[tuple[int, int, memoryview]]:
+    """``(byte offset, stream id, packet data)`` of each packet of the ``wanted``
+    streams, in file order. The data are a view of the read window, valid until the
+    next packet is asked for."""
+    for pos, buf, at, n, stream in _windows(c):
+        mv = buf.data
+        for a, m, s in zip(at.tolist(), n.tolist(), stream.tolist(), strict=True):
+            if s in wanted:
+                yield pos + a, s, mv[a + 8 : a + 8 + m]
+
+
+# Decoding memory, reused from one packet and one read to the next (memory written
+# before costs no page faults to write again).
+_ARENA_BYTES = 16 << 20
+_ARENAS = Recycler(keep=2, max_bytes=_ARENA_BYTES)
+
+
+class Arena:
+    """Packets decoded one after another into reused memory. :meth:`release` says that
+    nothing decoded so far is needed any more: the next packet starts again at the
+    beginning. A packet that does not fit gets fresh memory (what was decoded before
+    stays valid: its views keep their memory)."""
+
+    def __init__(self) -> None:
+        self.buf = _ARENAS.get(_ARENA_BYTES, _BYTE)
+        self.at = 0
+
+    def release(self) -> None:
+        self.at = 0
+
+    def take(self, need: int) -> int:
+        """Where in :attr:`buf` to decode a packet of at most ``need`` bytes."""
+        if self.at + need > self.buf.shape[0]:
+            if need <= _ARENA_BYTES:
+                self.buf = _ARENAS.get(_ARENA_BYTES, _BYTE)
+            else:
+                self.buf = np.empty(need, dtype=np.uint8)
+            self.at = 0
+        return self.at
+
+    def keep(self, start: int, n: int) -> None:
+        """Keep the ``n`` bytes decoded at ``start``: the next packet goes after them
+        (16-byte aligned)."""
+        self.at = start + ((n + 15) & ~15)
+
+
+# Packets of one window decoded together (on several threads) before they are yielded:
+# at most this many bytes of decoded bounds.
+_BATCH_BYTES = 4 << 20
+# Below this many compressed bytes a batch is decoded on the calling thread alone.
+_PARALLEL_MIN_BYTES = 128 << 10
+
+
+def decoded(c: Container, wanted: set[int], arena: Arena
+            ) -> Iterator[tuple[int, int, np.ndarray]]:
+    """``(byte offset, stream id, decoded bytes)`` of each packet of the ``wanted``
+    streams, in file order. The bytes are a view of ``arena``, valid until the arena is
+    released (a release while packets are being yielded frees only those yielded).
+
+    A packet that does not decode raises ``ValueError`` naming the file, the packet's
+    byte offset and its stream (a panic of the decoder included), once the packets
+    before it are yielded. LZ4 frames are checked first (layout, block sizes, content
+    size), a window at a time, by :func:`_lz4_plan`. Each frame then goes to cramjam
+    straight into the arena: block by block to the block decoder when its blocks need
+    no earlier data (the frame decoder's set-up costs more than a small frame's
+    decoding), whole to the frame decoder when its blocks are linked (each may refer to
+    the one before). The packets of a window are decoded in batches, each spread over
+    the process's decoding threads (cramjam releases the GIL)."""
+    comp = c.compression
+    for pos, buf, at_a, n_a, stream_a in _windows(c):
+        at, n, stream = at_a.tolist(), n_a.tolist(), stream_a.tolist()
+        keep = [k for k, s in enumerate(stream) if s in wanted]
+        if not keep:
+            continue
+        plan: list[list[int]] | None = None
+        if comp in (1, 2):
+            mask = np.zeros(len(at), dtype=np.bool_)
+            mask[keep] = True
+            plan = [a.tolist() for a in _lz4_plan(buf, at_a, n_a, mask)]
+        mv = buf.data
+        i = 0
+        while i < len(keep):
+            # A batch: consecutive packets, each given its own place in the arena.
+            jobs: list[_Job] = []
+            total = 0
+            while i < len(keep) and (not jobs or total < _BATCH_BYTES):
+                k = keep[i]
+                i += 1
+                job = _Job(pos + at[k], stream[k], at[k] + 8, n[k], k)
+                try:
+                    need = _need(comp, mv[job.a : job.a + job.m], k, plan)
+                except ValueError as exc:
+                    job.error = _decode_error(c, job.off, job.sid, exc)
+                    need = 0
+                job.start = arena.take(need)
+                job.out = arena.buf[job.start : job.start + need]
+                arena.keep(job.start, need)
+                total += need
+                jobs.append(job)
+            _run(c, comp, mv, plan, jobs)
+            tail = arena.at
+            for job in jobs:
+                if job.error is not None:
+                    raise job.error
+                yield job.off, job.sid, job.out[: job.got]
+                arena.at = max(arena.at, tail)  # a release frees only what was yielded
+
+
+class _Job:
+    """One packet to decode: where it is, where it goes, what came of it."""
+
+    __slots__ = ("a", "error", "got", "k", "m", "off", "out", "sid", "start")
+
+    def __init__(self, off: int, sid: int, a: int, m: int, k: int) -> None:
+        self.off, self.sid, self.a, self.m, self.k = off, sid, a, m, k
+        self.start = 0
+        self.out: np.ndarray = _EMPTY
+        self.got = 0
+        self.error: ValueError | None = None
+
+
+_EMPTY = np.empty(0, dtype=np.uint8)
+
+
+def _need(comp: int, data: memoryview, k: int, plan: list[list[int]] | None) -> int:
+    """Bytes the packet decodes to at most (``ValueError`` when its frame says none)."""
+    if plan is not None:
+        problem, bound, _, content = plan[0], plan[1], plan[2], plan[3]
+        if problem[k]:
+            raise ValueError(_lz4_problem(problem[k], len(data), content[k]))
+        return bound[k]
+    if comp == 0:
+        return len(data)
+    size = _zstd_content_size(data)
+    if size < 0:
+        raise ValueError("the Zstd frame gives no content size")
+    return size
+
+
+def _run(c: Container, comp: int, mv: memoryview, plan: list[list[int]] | None,
+         jobs: list[_Job]) -> None:
+    """Decode the jobs: on the calling thread, or spread over the decoding threads
+    (cut where the compressed bytes are shared evenly)."""
+    threads = _pool.worker_threads()
+    todo = [j for j in jobs if j.error is None]
+    size = sum(j.m for j in todo)
+    if threads < 2 or len(todo) < 2 or size < _PARALLEL_MIN_BYTES:
+        _decode_jobs(c, comp, mv, plan, todo)
+        return
+    parts: list[list[_Job]] = [[] for _ in range(min(threads, len(todo)))]
+    acc = 0
+    for j in todo:
+        parts[min(len(parts) - 1, acc * len(parts) // size)].append(j)
+        acc += j.m
+    futures = [_pool.executor().submit(_decode_jobs, c, comp, mv, plan, part)
+               for part in parts[1:]]
+    _decode_jobs(c, comp, mv, plan, parts[0])
+    for f in futures:
+        f.result()
+
+
+def _decode_jobs(c: Container, comp: int, mv: memoryview, plan: list[list[int]] | None,
+                 jobs: list[_Job]) -> None:
+    """Decode each job's packet into its place; a failure is kept in the job."""
+    import cramjam
+
+    for job in jobs:
+        a, m = job.a, job.m
+        out = job.out.data
+        try:
+            if plan is not None:
+                job.got = _lz4_into(cramjam, mv, a, m, out, plan, job)
+            elif comp == 0:
+                out[:m] = mv[a : a + m]
+                job.got = m
+            else:
+                job.got = int(cramjam.zstd.decompress_into(mv[a : a + m], out))
+        except Exception as exc:  # ValueError, cramjam.DecompressionError
+            job.error = _decode_error(c, job.off, job.sid, exc)
+        except BaseException as exc:  # a Rust panic (pyo3's PanicException)
+            if type(exc).__name__ != "PanicException":
+                raise
+            job.error = _decode_error(c, job.off, job.sid, exc)
+
+
+def _lz4_into(cramjam: Any, mv: memoryview, a: int, m: int, out: memoryview,
+              plan: list[list[int]], job: _Job) -> int:
+    """Decode the LZ4 frame ``mv[a : a + m]`` (checked by :func:`_lz4_plan`) into
+    ``out``: the decoded size."""
+    k_first, bmax, bstart, bsize = plan[4], plan[5], plan[6], plan[7]
+    k = job.k
+    if plan[2][k]:  # linked blocks
+        return int(cramjam.lz4.decompress_into(mv[a : a + m], out))
+    need = len(out)
+    got, top = 0, bmax[k]
+    block = cramjam.lz4.decompress_block_into
+    for j in range(k_first[k], k_first[k + 1]):
+        s, z = bstart[j], bsize[j]
+        if z < 0:  # stored as is
+            out[got : got - z] = mv[s : s - z]
+            got -= z
+        else:
+            got += block(mv[s : s + z], out[got : min(got + top, need)])
+    content = plan[3][k]
+    if content >= 0 and content != got:
+        raise ValueError(f"LZ4 content size {content} does not match the {got} bytes decoded")
+    return got
+
+
 def _decode_error(c: Container, offset: int, sid: int, exc: BaseException) -> ValueError:
     return ValueError(f"{c.name}: packet at byte {offset} (stream {sid}): its "
                       f"{_COMPRESSION[c.compression]} data do not decode ({exc}); the file "
                       "is damaged")
 
 
-def decoded_bound(c: Container, offset: int, sid: int, data: memoryview) -> int:
-    """Bytes the packet decodes to at most: the stored size, an LZ4 frame's blocks times
-    their maximum size (the frame's layout is checked on the way), or a Zstd frame's
-    content size (``ValueError`` when the frame does not give it)."""
-    comp = c.compression
-    try:
-        if comp in (1, 2):
-            return _lz4_bound(data)
-        if comp in (3, 4):
-            size = _zstd_content_size(data)
-            if size < 0:
-                raise ValueError("the Zstd frame gives no content size")
-            return size
-    except ValueError as exc:
-        raise _decode_error(c, offset, sid, exc) from None
-    return len(data)
-
-
-def decode_into(c: Container, offset: int, sid: int, data: memoryview, out: np.ndarray
-                ) -> int:
-    """Decode the packet into ``out`` (a uint8 array at least :func:`decoded_bound`
-    long): the decoded size. ``ValueError`` naming the packet when its data do not
-    decode (a panic of the decoder included)."""
-    comp = c.compression
-    if comp == 0:
-        out[: len(data)] = np.frombuffer(data, dtype=np.uint8)
-        return len(data)
-    import cramjam
-
-    try:
-        if comp in (1, 2):
-            return _lz4_decode_into(data, out)
-        return int(cramjam.zstd.decompress_into(data, out.data))
-    except Exception as exc:  # cramjam.DecompressionError
-        raise _decode_error(c, offset, sid, exc) from None
-    except BaseException as exc:  # a Rust panic (pyo3's PanicException)
-        if type(exc).__name__ != "PanicException":
-            raise
-        raise _decode_error(c, offset, sid, exc) from None
-
-
-def _lz4_decode_into(data: memoryview, out: np.ndarray) -> int:
-    """Decode an LZ4 frame (its layout checked by :func:`_lz4_bound`) into ``out``.
-
-    Blocks that need no earlier data (a frame of one block, or of independent blocks)
-    are decoded one by one with cramjam's block decoder straight into ``out``; a frame
-    of linked blocks goes to cramjam's frame decoder. Measured on dv's packets (one
-    block of up to 48 KB each): the block decoder takes less than half the time of the
-    frame decoder, whose set-up dominates on small frames."""
-    import cramjam
-
-    flg, bd = data[4], data[5]
-    pos = 6 + (8 if flg & 8 else 0) + (4 if flg & 1 else 0) + 1
-    block_max = 1 << (8 + 2 * ((bd >> 4) & 7))
-    skip = 4 if flg & 16 else 0
-    (first,) = struct.unpack_from("<I", data, pos)
-    nxt = pos + 4 + (first & 0x7FFFFFFF) + skip
-    if not flg & 32 and first != 0 and struct.unpack_from("<I", data, nxt)[0] != 0:
-        return int(cramjam.lz4.decompress_into(data, out.data))  # linked blocks
-    o = 0
-    while True:
-        (bs,) = struct.unpack_from("<I", data, pos)
-        pos += 4
-        if bs == 0:
-            break
-        size = bs & 0x7FFFFFFF
-        block = data[pos : pos + size]
-        if bs & 0x80000000:
-            out[o : o + size] = np.frombuffer(block, dtype=np.uint8)
-            o += size
-        else:
-            o += int(cramjam.lz4.decompress_block_into(block, out[o : o + block_max].data))
-        pos += size + skip
-    if flg & 8:
-        (content,) = struct.unpack_from("<Q", data, 6)
-        if content != o:
-            raise ValueError(f"LZ4 content size {content} does not match the {o} bytes "
-                             "decoded")
-    return o
-
-
 _LZ4_MAGIC = 0x184D2204
 
 
-def _lz4_bound(data: memoryview) -> int:
-    """Walk an LZ4 frame's layout (the format's version 1): its blocks times their
-    maximum size. ``ValueError`` when the layout is wrong."""
-    n = len(data)
-    if n < 7:
-        raise ValueError(f"an LZ4 frame needs 7 bytes or more, the packet has {n}")
-    magic, flg, bd = struct.unpack_from("<IBB", data, 0)
-    if magic != _LZ4_MAGIC:
-        raise ValueError("not an LZ4 frame (bad magic number)")
-    if (flg >> 6) != 1 or (flg & 2) or (bd & 0x8F) or ((bd >> 4) & 7) < 4:
-        raise ValueError("bad LZ4 frame descriptor")
-    pos = 6 + (8 if flg & 8 else 0) + (4 if flg & 1 else 0) + 1
-    block_max = 1 << (8 + 2 * ((bd >> 4) & 7))
-    skip = 4 if flg & 16 else 0
-    blocks = 0
-    while True:
-        if pos + 4 > n:
-            raise ValueError("LZ4 frame cut short")
-        (bs,) = struct.unpack_from("<I", data, pos)
-        pos += 4
-        if bs == 0:
-            break
-        size = bs & 0x7FFFFFFF
-        if size > block_max or pos + size > n:
-            raise ValueError("LZ4 block size beyond the frame's maximum or the packet")
-        blocks += 1
-        pos += size + skip
-    if (pos + 4 if flg & 4 else pos) != n:
-        raise ValueError("the LZ4 frame does not end where the packet ends")
-    bound = blocks * block_max
-    if flg & 8:
-        (content,) = struct.unpack_from("<Q", data, 6)
-        if content > bound:
-            raise ValueError(f"LZ4 content size {content} exceeds its {blocks} blocks")
-        bound = content
-    return bound
+def _lz4_problem(code: int, size: int, content: int) -> str:
+    return {
+        1: f"an LZ4 frame needs 7 bytes or more, the packet has {size}",
+        2: "not an LZ4 frame (bad magic number)",
+        3: "bad LZ4 frame descriptor",
+        4: "LZ4 frame cut short",
+        5: "LZ4 block size beyond the frame's maximum or the packet",
+        6: "the LZ4 frame does not end where the packet ends",
+        7: f"LZ4 content size {content} exceeds its blocks",
+    }[code]
+
+
+@numba.njit(cache=True, nogil=True)
+def _lz4_plan(buf, at, size, keep):  # pragma: no cover - compiled
+    """Walk the LZ4 frame (the format's version 1) of each kept packet (``size[k]``
+    bytes from ``at[k] + 8``). Per packet: problem code (0: none, else see
+    :func:`_lz4_problem`), bound on the decoded size (the content size when the frame
+    gives it, else its blocks times their maximum size), whether its blocks are linked
+    (more than one, and not independent), the content size or -1, its first block's
+    index, and its blocks' maximum size; per block: position in ``buf`` and size
+    (negative: stored as is)."""
+    k_n = at.shape[0]
+    problem = np.zeros(k_n, dtype=np.int64)
+    bound = np.zeros(k_n, dtype=np.int64)
+    linked = np.zeros(k_n, dtype=np.bool_)
+    content = np.full(k_n, -1, dtype=np.int64)
+    first = np.zeros(k_n + 1, dtype=np.int64)
+    bmax = np.zeros(k_n, dtype=np.int64)
+    cap = 64
+    bstart = np.empty(cap, dtype=np.int64)
+    bsize = np.empty(cap, dtype=np.int64)
+    nb = 0
+    for k in range(k_n):
+        first[k] = nb
+        if not keep[k]:
+            continue
+        base = at[k] + 8
+        n = size[k]
+        if n < 7:
+            problem[k] = 1
+            continue
+        if _u32(buf, base) != _LZ4_MAGIC:
+            problem[k] = 2
+            continue
+        flg = np.int64(buf[base + 4])
+        bd = np.int64(buf[base + 5])
+        if (flg >> 6) != 1 or (flg & 2) or (bd & 0x8F) or ((bd >> 4) & 7) < 4:
+            problem[k] = 3
+            continue
+        pos = 6 + (8 if flg & 8 else 0) + (4 if flg & 1 else 0) + 1
+        top = np.int64(1) << (8 + 2 * ((bd >> 4) & 7))
+        bmax[k] = top
+        skip = 4 if flg & 16 else 0
+        blocks = 0
+        bad = 0
+        while True:
+            if pos + 4 > n:
+                bad = 4
+                break
+            bs = _u32(buf, base + pos)
+            pos += 4
+            if bs == 0:
+                break
+            z = bs & 0x7FFFFFFF
+            if z > top or pos + z > n:
+                bad = 5
+                break
+            if nb == cap:
+                cap *= 2
+                s2 = np.empty(cap, dtype=np.int64)
+                z2 = np.empty(cap, dtype=np.int64)
+                s2[:nb] = bstart[:nb]
+                z2[:nb] = bsize[:nb]
+                bstart, bsize = s2, z2
+            bstart[nb] = base + pos
+            bsize[nb] = -z if bs & 0x80000000 else z
+            nb += 1
+            blocks += 1
+            pos += z + skip
+        if bad == 0 and (pos + 4 if flg & 4 else pos) != n:
+            bad = 6
+        if bad == 0 and flg & 8:
+            c = np.int64(0)
+            for b in range(8):
+                c |= np.int64(buf[base + 6 + b]) << (8 * b)
+            content[k] = c
+            if c < 0 or c > blocks * top:
+                bad = 7
+        if bad:
+            problem[k] = bad
+            nb = first[k]
+            continue
+        bound[k] = content[k] if content[k] >= 0 else blocks * top
+        linked[k] = blocks > 1 and not flg & 32
+    first[k_n] = nb
+    return problem, bound, linked, content, first, bmax, bstart[:nb], bsize[:nb]
 
 
 def _zstd_content_size(data: memoryview) -> int:

@@ -47,7 +47,6 @@ from typing import Any
 import numba
 import numpy as np
 
-from asynhdr._recycle import Recycler
 from asynhdr.events import EVENT_DTYPE, TRIGGER_DTYPE, Recording, empty_triggers
 from asynhdr.io import _aedat_decode as _own
 from asynhdr.io import _pair_triggers, _require_file
@@ -150,49 +149,12 @@ def _own_triggers(c: _own.Container) -> tuple[np.ndarray, dict[str, int]]:
     s = c.stream_of_type("TRIG")
     if s is None:
         return empty_triggers(), {}
-    arena = _Arena()
-    records = [_own.trigger_records(c, off, sid, arena.decode(c, off, sid, data, reuse=True))
-               for off, sid, data in _own.walk(c, {s.id})]
+    arena = _own.Arena()
+    records = []
+    for off, sid, raw in _own.decoded(c, {s.id}, arena):
+        records.append(_own.trigger_records(c, off, sid, raw))
+        arena.release()
     return _trigger_edges(records)
-
-
-# Decoding memory, reused from one packet and one read to the next (memory written
-# before costs no page faults to write again).
-_ARENA_BYTES = 16 << 20
-_ARENAS = Recycler(keep=2, max_bytes=_ARENA_BYTES)
-_BYTE = np.dtype(np.uint8)
-
-
-class _Arena:
-    """Packets decoded one after another into reused memory; :meth:`release` says that
-    nothing decoded so far is needed any more, and the next packet starts again at the
-    beginning. A packet that does not fit gets fresh memory (what was decoded before
-    stays valid)."""
-
-    def __init__(self) -> None:
-        self.buf = _ARENAS.get(_ARENA_BYTES, _BYTE)
-        self.at = 0
-
-    def release(self) -> None:
-        self.at = 0
-
-    def decode(self, c: _own.Container, off: int, sid: int, data: memoryview,
-               reuse: bool = False) -> np.ndarray:
-        """The packet's decoded bytes (a view of the arena). ``reuse``: the bytes are not
-        needed once the next packet is asked for."""
-        need = _own.decoded_bound(c, off, sid, data)
-        if self.at + need > self.buf.shape[0]:
-            # Packets decoded before stay where they are (their views keep that memory).
-            if need <= _ARENA_BYTES:
-                self.buf = _ARENAS.get(_ARENA_BYTES, _BYTE)
-            else:
-                self.buf = np.empty(need, dtype=np.uint8)
-            self.at = 0
-        at = self.at
-        n = _own.decode_into(c, off, sid, data, self.buf[at : at + need])
-        if not reuse:
-            self.at = at + ((n + 15) & ~15)  # the next packet 16-byte aligned
-        return self.buf[at : at + n]
 
 
 def _trigger_edges(records: list[tuple[np.ndarray, np.ndarray]]
@@ -228,23 +190,24 @@ class _Source:
     def triggers(self) -> tuple[np.ndarray, dict[str, int]]:
         return _own_triggers(self._c)
 
-    def batches(self, arena: _Arena, triggers: list[tuple[np.ndarray, np.ndarray]] | None = None
+    def batches(self, arena: _own.Arena,
+                triggers: list[tuple[np.ndarray, np.ndarray]] | None = None
                 ) -> Iterator[np.ndarray]:
         """Each non-empty event packet, as an array of dv's records in ``arena`` (valid
         until the arena is released); with ``triggers``, the trigger packets' (timestamps,
         type codes) are appended to it on the way (one pass over the file)."""
         c = self._c
-        wanted = {self._events}
+        ev = self._events
+        wanted = {ev}
         trig = c.stream_of_type("TRIG")
         if triggers is not None and trig is not None:
             wanted.add(trig.id)
-        for off, sid, data in _own.walk(c, wanted):
-            if sid != self._events:
+        for off, sid, raw in _own.decoded(c, wanted, arena):
+            if sid != ev:
                 assert triggers is not None
-                raw = arena.decode(c, off, sid, data, reuse=True)
                 triggers.append(_own.trigger_records(c, off, sid, raw))
                 continue
-            a = _own.event_records(c, off, sid, arena.decode(c, off, sid, data))
+            a = _own.event_records(c, off, sid, raw)
             if a.shape[0]:
                 yield a
 
@@ -298,7 +261,7 @@ def _packets(src: _Source) -> Iterator[np.ndarray]:
     """Each non-empty event packet as its own EVENT_DTYPE array (pixels checked)."""
     p, width, height = src.p, src.width, src.height
     seen = 0
-    arena = _Arena()
+    arena = _own.Arena()
     for a in src.batches(arena):
         m = a.shape[0]
         out = np.empty(m, dtype=EVENT_DTYPE)
@@ -346,7 +309,7 @@ def _read_all_events(src: _Source, triggers: list[tuple[np.ndarray, np.ndarray]]
     above it in place (``realloc``: no second copy).
     """
     p, width, height = src.p, src.width, src.height
-    arena = _Arena()
+    arena = _own.Arena()
     batches = src.batches(arena, triggers)
     buf: np.ndarray | None = None
     cap = n = 0
