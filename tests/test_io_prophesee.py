@@ -427,6 +427,15 @@ _EVT3_GROUPS = st.one_of(
         lambda a: [0x3000 | a[0], 0x4000 | (a[1] & 0xFFF), 0x4000 | ((a[1] >> 12) & 0xFFF),
                    0x5000 | (a[1] >> 24)]
     ),
+    # a sparse stream's lone events between TIME_HIGH words, repeated or not
+    st.tuples(_TIME_HIGH, _TIME_HIGH, st.integers(0, 0xFFF), _ROW, _COLUMN).map(
+        lambda a: [0x8000 | a[0], 0x6000 | a[2], a[3], 0x2000 | a[4], 0x8000 | a[1],
+                   0x6000 | a[2], a[3], 0x2000 | a[4], 0x8000 | a[1]]
+    ),
+    # sensor monitoring: OTHERS + CONTINUED_12 + CONTINUED_12 + CONTINUED_4, whole or cut
+    st.tuples(st.integers(1, 8), st.integers(0, 4)).map(
+        lambda a: ([0xE014, 0xF015, 0xF000, 0x7000] * a[0])[: 4 * a[0] - a[1]]
+    ),
 )
 _OUTSIDE = st.sampled_from(
     [[0x2040], [0x0008], [0x6000, 0x0008, 0x2001], [0x6000, 0x0001, 0x2840], [0x303C, 0x4010],
@@ -449,21 +458,28 @@ def test_evt3_decoder_equals_a_plain_reference(
     words = [0x8000, 0x0001] + [w for g in groups for w in g]
     path = _write(tmp_path / "ref.raw", EVT3_HEADER, np.array(words, dtype="<u2"))
     events, triggers, error = _evt3_reference(words, 64, 8)
-    if error is not None:
-        offset = len(EVT3_HEADER) + 2 * error[0]
-        with pytest.raises(ValueError, match=rf"ref\.raw.*byte offset {offset}\b.*{error[1]}\b"):
-            pr.read_raw(path)
-        with pytest.raises(ValueError, match=rf"byte offset {offset}\b"):
-            list(pr.iter_raw(path, chunk_events=3, block_bytes=8))
-        return
-    rec = pr.read_raw(path)
-    np.testing.assert_array_equal(rec.events, _ev(events))
-    expected_tr = _tr(triggers)
-    by_time = np.argsort(expected_tr["t"], kind="stable")
-    np.testing.assert_array_equal(rec.triggers, expected_tr[by_time])
-    got, got_tr = _concat(list(pr.iter_raw(path, chunk_events=3, block_bytes=8)))
-    np.testing.assert_array_equal(got, rec.events)
-    np.testing.assert_array_equal(got_tr, expected_tr)
+    # Both compiled variants (dense and sparse streams), whichever the stream would get.
+    with pytest.MonkeyPatch.context() as mp:
+        for kernel in (pr._k.decode_evt3, pr._k.decode_evt3_sparse):
+            mp.setattr(pr, "_evt3_kernel", lambda words, pos, kernel=kernel: kernel)
+            if error is not None:
+                offset = len(EVT3_HEADER) + 2 * error[0]
+                with pytest.raises(ValueError,
+                                   match=rf"ref\.raw.*byte offset {offset}\b.*{error[1]}\b"):
+                    pr.read_raw(path)
+                with pytest.raises(ValueError, match=rf"byte offset {offset}\b"):
+                    list(pr.iter_raw(path, chunk_events=3, block_bytes=8))
+                continue
+            rec = pr.read_raw(path)
+            np.testing.assert_array_equal(rec.events, _ev(events))
+            expected_tr = _tr(triggers)
+            by_time = np.argsort(expected_tr["t"], kind="stable")
+            np.testing.assert_array_equal(rec.triggers, expected_tr[by_time])
+            for chunk_events, block_bytes in ((3, 8), (1000, 1 << 12)):
+                got, got_tr = _concat(list(pr.iter_raw(path, chunk_events=chunk_events,
+                                                       block_bytes=block_bytes)))
+                np.testing.assert_array_equal(got, rec.events)
+                np.testing.assert_array_equal(got_tr, expected_tr)
 
 
 def test_evt3_vector_without_base_is_dropped(tmp_path: Path) -> None:
