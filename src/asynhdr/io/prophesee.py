@@ -158,9 +158,9 @@ _EVT21_LEGACY_BEFORE_SYSTEM_ID = 0x37
 
 
 def _read_header(f: BinaryIO, name: str) -> tuple[list[str], int]:
-    """Return the '%' lines at the start of ``f`` (without '%') and the payload offset."""
+    """Return the '%' lines at the start of ``f`` (a file just opened, at byte 0; without
+    '%') and the payload offset."""
     lines: list[str] = []
-    f.seek(0)
     buf = f.read(4096)  # a header is usually a few hundred bytes
     at = 0  # offset in the file of the line being read (and of buf[at])
     while True:
@@ -396,18 +396,17 @@ class _RawInfo:
     """Everything the header says that decoding needs."""
 
     def __init__(self, path: str | os.PathLike[str], width: int | None, height: int | None):
-        self.path = Path(path)
+        self.path = path
         self.name = str(path)
         try:
-            f = open(self.path, "rb", buffering=0)
+            f = open(path, "rb", buffering=0)
         except FileNotFoundError:
             raise FileNotFoundError(f"{self.name}: no such file") from None
         except OSError as exc:
             raise ValueError(f"{self.name}: cannot open: {exc.strerror or exc}") from exc
         with f:
             lines, self.header_bytes = _read_header(f, self.name)
-            f.seek(0, os.SEEK_END)
-            self.file_bytes = f.tell()
+            self.file_bytes = os.fstat(f.fileno()).st_size
         self.fields = _parse_fields(lines)
         self.format, options = _format_from_header(self.fields, self.name)
         self.width, self.height, self.geometry_source = _resolve_geometry(
@@ -458,9 +457,12 @@ def raw_info(
 # --------------------------------------------------------------------------------------
 
 
+_STATE_SIZES = {"evt2": _k.EVT2_STATE_SIZE, "evt21": _k.EVT21_STATE_SIZE,
+                "evt3": _k.EVT3_STATE_SIZE}
+
+
 def _new_state(fmt: str) -> np.ndarray:
-    size = {"evt2": _k.EVT2_STATE_SIZE, "evt21": _k.EVT21_STATE_SIZE, "evt3": _k.EVT3_STATE_SIZE}
-    return np.zeros(size[fmt], dtype=np.int64)
+    return np.zeros(_STATE_SIZES[fmt], dtype=np.int64)
 
 
 def _evt3_kernel(words: np.ndarray, pos: int) -> Any:
@@ -530,10 +532,13 @@ def _grow(arr: np.ndarray, n_used: int, min_size: int) -> np.ndarray:
     return new
 
 
+_KERNEL_DTYPES: dict[str, np.dtype[Any]] = {
+    "evt3": np.dtype("<u2"), "evt2": np.dtype("<u4"), "evt21": np.dtype("<u4")}
+
+
 def _kernel_view(info: _RawInfo, raw: np.ndarray) -> np.ndarray:
     """Payload bytes -> the array a kernel takes (uint16, uint32, or uint32 pairs)."""
-    dtype = {"evt3": "<u2", "evt2": "<u4", "evt21": "<u4"}[info.format]
-    return raw.view(dtype)
+    return raw.view(_KERNEL_DTYPES[info.format])
 
 
 def _warn_trailing(info: _RawInfo) -> None:
