@@ -340,7 +340,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                         help="size of the synthetic EVT 3.0 file in GB (0 to skip)")
     parser.add_argument("--out", type=Path, default=Path("out") / "bench",
                         help="folder for bench_decode.json")
-    parser.add_argument("--runs", type=int, default=15, help="timed rounds per file")
+    parser.add_argument("--runs", type=int, default=31,
+                        help="timed rounds per file (single calls: ms-scale, so many rounds)")
     parser.add_argument("--chunk-events", type=int, default=1_000_000,
                         help="iter_raw chunk size for the synthetic file")
     parser.add_argument("--tmp", default=None, help="folder for the synthetic file")
