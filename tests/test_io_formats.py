@@ -1056,6 +1056,25 @@ def test_aedat4_threads_and_batches_do_not_change_results(
         assert_same_as_dv(fuzz_dir / f"template_{compression}.aedat4")
 
 
+def test_aedat4_many_packets_in_one_window(tmp_path: Path) -> None:
+    """1,500 event packets (and as many trigger packets) in one window: the lists of
+    packets and of LZ4 blocks grow past their first size, and the recording is what
+    dv-processing reads."""
+    dv = pytest.importorskip("dv_processing")
+    path = tmp_path / "many.aedat4"
+    writer = dv_writer(path, size=(16, 8))
+    for k in range(1500):
+        store = dv.EventStore()
+        store.push_back(1_000 + 10 * k, k % 16, k % 8, bool(k % 2))
+        writer.writeEvents(store)
+        writer.writeTrigger(dv.Trigger(1_000 + 10 * k,
+                                       dv.TriggerType.EXTERNAL_SIGNAL_RISING_EDGE))
+    del writer
+    assert path.stat().st_size < 16 << 20  # one window
+    assert_same_as_dv(path)
+    assert read_aedat(path).events.size == 1500
+
+
 def test_aedat4_file_cut_while_being_read(fuzz_dir: Path) -> None:
     """A file that shrinks between its header's read and its packets' read gives a
     ValueError naming it, not a loop waiting for bytes that never come."""

@@ -109,6 +109,14 @@ def _header(name: str, f: BinaryIO, size: int) -> tuple[int, int, int]:
 
 
 @numba.njit(cache=True, nogil=True)
+def _grown(a, n):  # pragma: no cover - compiled
+    """``a[:n]`` in an array twice as long as ``a``."""
+    b = np.empty(2 * a.shape[0], dtype=a.dtype)
+    b[:n] = a[:n]
+    return b
+
+
+@numba.njit(cache=True, nogil=True)
 def _packets(buf, n, end):  # pragma: no cover - compiled
     """The packets whose bytes lie wholly in ``buf[:n]`` (file bytes from the first
     packet on; the packets end at ``end``, relative to the same start): their
@@ -138,15 +146,8 @@ def _packets(buf, n, end):  # pragma: no cover - compiled
         if pos + 8 + m > n:
             status = 1
             break
-        if k == cap:
-            cap *= 2
-            at2 = np.empty(cap, dtype=np.int64)
-            size2 = np.empty(cap, dtype=np.int64)
-            stream2 = np.empty(cap, dtype=np.int64)
-            at2[:k] = at[:k]
-            size2[:k] = size[:k]
-            stream2[:k] = stream[:k]
-            at, size, stream = at2, size2, stream2
+        if k == at.shape[0]:
+            at, size, stream = _grown(at, k), _grown(size, k), _grown(stream, k)
         at[k], size[k], stream[k] = pos, m, sid
         k += 1
         pos += 8 + m
@@ -571,13 +572,8 @@ def _lz4_plan(buf, at, size, keep):  # pragma: no cover - compiled
             if z > top or pos + z > n:
                 bad = 5
                 break
-            if nb == cap:
-                cap *= 2
-                s2 = np.empty(cap, dtype=np.int64)
-                z2 = np.empty(cap, dtype=np.int64)
-                s2[:nb] = bstart[:nb]
-                z2[:nb] = bsize[:nb]
-                bstart, bsize = s2, z2
+            if nb == bstart.shape[0]:
+                bstart, bsize = _grown(bstart, nb), _grown(bsize, nb)
             bstart[nb] = base + pos
             bsize[nb] = -z if bs & 0x80000000 else z
             nb += 1
