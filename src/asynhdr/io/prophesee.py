@@ -466,12 +466,20 @@ def _new_state(fmt: str) -> np.ndarray:
 
 
 def _evt3_kernel(words: np.ndarray, pos: int) -> Any:
-    """The EVT 3.0 decoder variant for the words from ``pos`` (sparse or dense stream)."""
+    """The EVT 3.0 decoder variant for the words from ``pos`` (sparse or dense stream),
+    picked once a block: the pick samples 1,024 words."""
     return _k.decode_evt3_sparse if _k.evt3_sparse(words, pos) else _k.decode_evt3
+
+
+def _block_kernel(info: _RawInfo, words: np.ndarray) -> Any:
+    """What :func:`_run_kernel` decodes a block of ``info``'s format with: the EVT 3.0
+    variant for these words, or None for the EVT 2.x formats."""
+    return _evt3_kernel(words, 0) if info.format == "evt3" else None
 
 
 def _run_kernel(
     info: _RawInfo,
+    kernel: Any,
     words: np.ndarray,
     pos: int,
     state: np.ndarray,
@@ -482,7 +490,7 @@ def _run_kernel(
     n_tr: int,
 ) -> tuple[int, int, int, int]:
     if info.format == "evt3":
-        res = _evt3_kernel(words, pos)(
+        res = kernel(
             words, pos, state, info.width, info.height, events, n_ev, limit, triggers, n_tr,
             _NO_TRIGGER_INDEX,
         )
@@ -966,9 +974,10 @@ def read_raw(
         events = np.empty(capacity, dtype=EVENT_DTYPE)
         triggers = np.empty(64, dtype=TRIGGER_DTYPE)
         pos = n_ev = n_tr = 0
+        kernel = _block_kernel(info, words)
         while True:
             status, pos, n_ev, n_tr = _run_kernel(
-                info, words, pos, state, events, n_ev, events.shape[0], triggers, n_tr
+                info, kernel, words, pos, state, events, n_ev, events.shape[0], triggers, n_tr
             )
             if status == _k.STATUS_DONE:
                 break
@@ -1118,9 +1127,10 @@ def _iter_chunks(
                 words_before += want // ws
                 continue
             pos = 0
+            kernel = _block_kernel(info, words)
             while True:
                 status, pos, n_ev, n_tr = _run_kernel(
-                    info, words, pos, state, events, n_ev, chunk_events, triggers, n_tr
+                    info, kernel, words, pos, state, events, n_ev, chunk_events, triggers, n_tr
                 )
                 if status == _k.STATUS_DONE:
                     break
