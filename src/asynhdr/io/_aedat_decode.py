@@ -35,7 +35,7 @@ import struct
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import BinaryIO
 
 import numba
 import numpy as np
@@ -381,9 +381,9 @@ def decoded(c: Container, wanted: set[int], arena: Arena
                 except ValueError as exc:
                     job.error = _decode_error(c, job.off, job.sid, exc)
                     need = 0
-                job.start = arena.take(need)
-                job.out = arena.buf[job.start : job.start + need]
-                arena.keep(job.start, need)
+                start = arena.take(need)
+                job.out = arena.buf[start : start + need]
+                arena.keep(start, need)
                 total += need
                 jobs.append(job)
             _run(c, comp, mv, plan, jobs)
@@ -398,11 +398,10 @@ def decoded(c: Container, wanted: set[int], arena: Arena
 class _Job:
     """One packet to decode: where it is, where it goes, what came of it."""
 
-    __slots__ = ("a", "error", "got", "k", "m", "off", "out", "sid", "start")
+    __slots__ = ("a", "error", "got", "k", "m", "off", "out", "sid")
 
     def __init__(self, off: int, sid: int, a: int, m: int, k: int) -> None:
         self.off, self.sid, self.a, self.m, self.k = off, sid, a, m, k
-        self.start = 0
         self.out: np.ndarray = _EMPTY
         self.got = 0
         self.error: ValueError | None = None
@@ -458,7 +457,7 @@ def _decode_jobs(c: Container, comp: int, mv: memoryview, plan: list[list[int]] 
         out = job.out.data
         try:
             if plan is not None:
-                job.got = _lz4_into(cramjam, mv, a, m, out, plan, job)
+                job.got = _lz4_into(mv, plan, job)
             elif comp == 0:
                 out[:m] = mv[a : a + m]
                 job.got = m
@@ -472,14 +471,16 @@ def _decode_jobs(c: Container, comp: int, mv: memoryview, plan: list[list[int]] 
             job.error = _decode_error(c, job.off, job.sid, exc)
 
 
-def _lz4_into(cramjam: Any, mv: memoryview, a: int, m: int, out: memoryview,
-              plan: list[list[int]], job: _Job) -> int:
-    """Decode the LZ4 frame ``mv[a : a + m]`` (checked by :func:`_lz4_plan`) into
-    ``out``: the decoded size."""
+def _lz4_into(mv: memoryview, plan: list[list[int]], job: _Job) -> int:
+    """Decode the job's LZ4 frame (checked by :func:`_lz4_plan`) into its place: the
+    decoded size."""
+    import cramjam
+
     k_first, bmax, bstart, bsize = plan[4], plan[5], plan[6], plan[7]
     k = job.k
+    out = job.out.data
     if plan[2][k]:  # linked blocks
-        return int(cramjam.lz4.decompress_into(mv[a : a + m], out))
+        return int(cramjam.lz4.decompress_into(mv[job.a : job.a + job.m], out))
     need = len(out)
     got, top = 0, bmax[k]
     block = cramjam.lz4.decompress_block_into
