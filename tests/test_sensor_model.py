@@ -47,41 +47,6 @@ def test_refractory_longer_than_cycle_is_an_error() -> None:
                  sensor=QUIET.with_(refractory_us=2000.0))
 
 
-def test_photoreceptor_lag_is_tau_at_the_event_irradiance() -> None:
-    """Quasi-static low-pass: each event is delayed by tau(I) = tau_ref (I_ref + I_dark) /
-    (I + I_dark) at the irradiance where it fires. The approximation holds while tau
-    changes slowly between events (the bright pixel); a pixel's events never overtake
-    each other (the dark pixel's later events bunch up behind its first)."""
-    rig = Rig(period_us=50_000, t1_shape="linear", t2_shape="linear", t2_stop=0.5,
-              l_const=10.0, k_lens=1.0)
-    radiance = np.array([[300.0, 3e6]])
-    base = simulate(radiance, rig=rig, sensor=QUIET, n_cycles=1)
-    lp_sensor = QUIET.with_(cutoff_hz=500.0, cutoff_irradiance=1000.0, dark_irradiance=0.5)
-    lagged = simulate(radiance, rig=rig, sensor=lp_sensor, n_cycles=1)
-    c = QUIET.threshold_on
-    for x in (0, 1):
-        b = per_pixel(base.events, 2)[x]
-        g = per_pixel(lagged.events, 2)[x]
-        assert b.size == g.size
-        e0 = 1e-3 * radiance[0, x] + 1.0 * 10.0
-        on = b["p"] == 1
-        levels = e0 * np.exp(c * np.arange(1, on.sum() + 1))  # irradiance at each ON
-        tau = 1e6 / (2 * math.pi * 500.0) * (1000.0 + 0.5) / (levels + 0.5)
-        delay = (g["t"][on] - b["t"][on]).astype(float)
-        expected = np.minimum(tau, lp_sensor.tau_max_us)
-        # quasi-static where tau changes by under 2 % of the time between events
-        gap = np.diff(b["t"][on]).astype(float)
-        slow = np.concatenate(([True], np.abs(np.diff(expected)) < 0.02 * gap))
-        assert slow.sum() >= (5 if x == 1 else 1)
-        assert np.all(np.abs(delay[slow] - expected[slow]) <= 1.0)
-        assert abs(delay[0] - expected[0]) <= 1.0
-        assert np.all(np.diff(g["t"]) >= 0)
-    # darker pixels lag more
-    d_dark = per_pixel(lagged.events, 2)[0]["t"][0] - per_pixel(base.events, 2)[0]["t"][0]
-    d_bright = per_pixel(lagged.events, 2)[1]["t"][0] - per_pixel(base.events, 2)[1]["t"][0]
-    assert d_dark > d_bright
-
-
 def test_background_rate_and_exponential_inter_arrivals() -> None:
     rng = np.random.default_rng(5)
     rate_hz, n_pix, duration_us = 0.4, 2_000, 1e9  # 2e6 pixel-seconds

@@ -9,6 +9,14 @@ ramp part of each cycle; ``T2`` (reference path, a weak uniform source ``L_const
 falls. After the ramp both panels return to their start values, ready for the next
 cycle. Transmittances are *actual* transmittances (leakage included), in [0, 1].
 
+The rig *commands* transmittances (:meth:`Rig.target_waveforms`); real liquid-crystal
+panels produce them through their voltage curve and their slow, asymmetric response
+(:mod:`asynhdr.panel`). With a panel named (``panel="tn"`` or ``"fast_shutter"``) the
+drive voltages are designed for those panels (:func:`asynhdr.waveform.design`, with
+pre-emphasis unless ``pre_emphasis=False``) and :meth:`Rig.waveforms` returns what the
+panels then really transmit, one knot per generator sample: the transmittance the
+sensor sees. ``panel="ideal"`` follows the command instantly.
+
 Waveforms are piecewise linear between knots over one cycle, phase ``u`` in [0, 1]
 (fraction of ``period_us``). The exact sensor engine uses that: irradiance is then
 exactly piecewise linear in time for every pixel.
@@ -18,121 +26,47 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from functools import cached_property
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
 from asynhdr.events import make_triggers
+from asynhdr.panel import FAST_FALL_US, FAST_RISE_US, Panel, tn_panel
+from asynhdr.transmittance import DEFAULT_KNOTS, Shape, Waveform, cycle_waveform
+from asynhdr.waveform import DEFAULT_SAMPLE_RATE_HZ, design
 
 __all__ = [
     "DEFAULT_KNOTS",
+    "PANELS",
     "Rig",
     "Waveform",
     "cycle_waveform",
 ]
 
-DEFAULT_KNOTS = 4096
-"""Knots over the ramp of a generated waveform. A log-linear (exponential) ramp over a
-1000:1 range sampled this finely is within 4e-7 (relative) of the true curve: a timing
-error under 0.003 µs on a 45 ms ramp, well below the 1 µs timestamp quantum."""
-
-Shape = Literal["linear", "exponential"]
-
-
-@dataclass(frozen=True, eq=False)
-class Waveform:
-    """Actual transmittance over one cycle, piecewise linear between knots.
-
-    Attributes
-    ----------
-    phase : float64 knots, strictly increasing, first 0 and last 1 (fraction of the
-        period).
-    values : float64 transmittance at the knots, each in [0, 1].
-    name : a short description ("exponential 0.001->1", "sampled", ...).
-    """
-
-    phase: np.ndarray
-    values: np.ndarray
-    name: str = "sampled"
-
-    def __post_init__(self) -> None:
-        ph = np.ascontiguousarray(self.phase, dtype=np.float64)
-        va = np.ascontiguousarray(self.values, dtype=np.float64)
-        object.__setattr__(self, "phase", ph)
-        object.__setattr__(self, "values", va)
-        if ph.ndim != 1 or va.shape != ph.shape or ph.size < 2:
-            raise ValueError(
-                f"waveform {self.name!r}: phase and values must be 1-D of equal length >= 2, "
-                f"got {ph.shape} and {va.shape}"
-            )
-        if ph[0] != 0.0 or ph[-1] != 1.0 or np.any(np.diff(ph) <= 0):
-            raise ValueError(
-                f"waveform {self.name!r}: phase knots must increase strictly from 0 to 1"
-            )
-        if not np.all(np.isfinite(va)) or va.min() < 0.0 or va.max() > 1.0:
-            raise ValueError(
-                f"waveform {self.name!r}: transmittance must be finite and within [0, 1], "
-                f"got range [{va.min():.4g}, {va.max():.4g}]"
-            )
-
-    def __call__(self, phase: npt.ArrayLike) -> np.ndarray:
-        """Transmittance at ``phase`` (fraction of the period, in [0, 1])."""
-        return np.interp(np.asarray(phase, dtype=np.float64), self.phase, self.values)
-
-    @classmethod
-    def from_samples(cls, values: npt.ArrayLike, *, name: str = "sampled") -> Waveform:
-        """A waveform from samples evenly spaced over the cycle, first at phase 0, last at 1."""
-        va = np.asarray(values, dtype=np.float64)
-        return cls(np.linspace(0.0, 1.0, va.size), va, name=name)
+PANELS = ("ideal", "tn", "fast_shutter")
+"""Panel models the rig can name: ``ideal`` follows the command at once; ``tn`` is a
+twisted-nematic pair (normally-white scene panel, normally-black reference panel, whose
+field-driven directions serve the fast parts of the cycle); ``fast_shutter`` is a
+sub-millisecond nematic shutter on both paths. Constants and sources: docs/panels.md."""
 
 
-def _ramp_values(shape: str, start: float, stop: float, s: np.ndarray) -> np.ndarray:
-    """Transmittance along a ramp, ``s`` in [0, 1] from ``start`` to ``stop``."""
-    if shape == "linear":
-        return start + (stop - start) * s
-    if shape == "exponential":
-        if start <= 0.0 or stop <= 0.0:
-            raise ValueError(
-                "exponential ramp: start and stop transmittance must be > 0 "
-                f"(got {start}, {stop}); the panel's leakage floor sets the start"
-            )
-        return start * (stop / start) ** s
-    raise ValueError(f"unknown waveform shape {shape!r}; expected 'linear' or 'exponential'")
-
-
-def cycle_waveform(
-    shape: str,
-    *,
-    start: float,
-    stop: float,
-    ramp_fraction: float,
-    n_knots: int = DEFAULT_KNOTS,
-) -> Waveform:
-    """One modulation cycle: a ramp from ``start`` to ``stop``, then a linear return.
-
-    Over phase ``[0, ramp_fraction]`` the transmittance follows ``shape`` (sampled on
-    ``n_knots`` intervals; a linear ramp needs only its two ends):
-    ``linear``: ``T = start + (stop - start) s``; ``exponential`` (log-linear):
-    ``T = start (stop / start)^s``, with ``s = u / ramp_fraction``. Over the first half
-    of ``[ramp_fraction, 1]`` it returns linearly to ``start`` and holds there for the
-    second half, so every pixel has settled (and fired its return events) before the
-    next cycle starts.
-    """
-    if not 0.0 < ramp_fraction <= 1.0:
-        raise ValueError(f"ramp_fraction must be in (0, 1], got {ramp_fraction}")
-    if n_knots < 2:
-        raise ValueError(f"n_knots must be >= 2, got {n_knots}")
-    # a straight ramp is exact with its two end knots; curved ones need the table
-    s = np.linspace(0.0, 1.0, (1 if shape == "linear" else n_knots) + 1)
-    vals = _ramp_values(shape, start, stop, s)
-    phase = s * ramp_fraction
-    if ramp_fraction < 1.0:
-        settle = ramp_fraction + 0.5 * (1.0 - ramp_fraction)
-        phase = np.append(phase, [settle, 1.0])
-        vals = np.append(vals, [start, start])
-    return Waveform(phase, vals, name=f"{shape} {start:g}->{stop:g}")
-
+def rig_panels(name: str, *, contrast_ratio_1: float, contrast_ratio_2: float
+               ) -> tuple[Panel, Panel] | None:
+    """The scene and reference panels of the preset ``name`` (None for ``ideal``), with
+    the rig's contrast ratios as their leakage floors."""
+    if name == "ideal":
+        return None
+    if name == "tn":
+        return (tn_panel(normally_white=True, contrast_ratio=contrast_ratio_1, name="tn"),
+                tn_panel(normally_white=False, contrast_ratio=contrast_ratio_2,
+                         name="tn_nb"))
+    if name == "fast_shutter":
+        return tuple(tn_panel(rise_us=FAST_RISE_US, fall_us=FAST_FALL_US, contrast_ratio=cr,
+                              name="fast_shutter")
+                     for cr in (contrast_ratio_1, contrast_ratio_2))  # type: ignore[return-value]
+    raise ValueError(f"unknown panel {name!r}; expected one of {', '.join(PANELS)}")
 
 @dataclass(frozen=True)
 class Rig:
@@ -156,7 +90,13 @@ class Rig:
     l_const : radiance of the reference source, in the scene's unit. Default 10 lux:
         near the geometric centre of the paper's chart (160,000 lux x 10^-4.11).
     k_lens : lens attenuation (dimensionless); it scales both paths.
-    t1, t2 : optional sampled waveforms replacing the generated ones.
+    t1, t2 : optional sampled target waveforms replacing the generated ones.
+    panel : the panels the waveforms drive (:data:`PANELS`): ``"ideal"`` transmits the
+        target at once; ``"tn"`` and ``"fast_shutter"`` transmit what real panels of
+        that kind make of the designed drive (module docstring).
+    pre_emphasis : design the drive to invert the panels' response (else the static
+        inverse of the target is commanded). Ignored for ``panel="ideal"``.
+    sample_rate_hz : the signal generator's sample rate for the drive.
     """
 
     period_us: int = 50_000
@@ -171,6 +111,9 @@ class Rig:
     n_knots: int = DEFAULT_KNOTS
     t1: Waveform | None = field(default=None, compare=False)
     t2: Waveform | None = field(default=None, compare=False)
+    panel: str = "ideal"
+    pre_emphasis: bool = True
+    sample_rate_hz: float = DEFAULT_SAMPLE_RATE_HZ
 
     def __post_init__(self) -> None:
         if int(self.period_us) != self.period_us or self.period_us <= 0:
@@ -192,14 +135,20 @@ class Rig:
             if shape not in ("linear", "exponential"):
                 raise ValueError(f"unknown waveform shape {shape!r}; "
                                  "expected 'linear' or 'exponential'")
+        if self.panel not in PANELS:
+            raise ValueError(f"unknown panel {self.panel!r}; expected one of "
+                             f"{', '.join(PANELS)}")
+        if not (self.sample_rate_hz > 0 and math.isfinite(self.sample_rate_hz)):
+            raise ValueError(f"sample_rate_hz must be positive and finite, got "
+                             f"{self.sample_rate_hz}")
 
     @property
     def ramp_us(self) -> float:
         """Length of the ramp in µs."""
         return self.period_us * self.ramp_fraction
 
-    def waveforms(self) -> tuple[Waveform, Waveform]:
-        """``(T1, T2)`` over one cycle, leakage floors included."""
+    def target_waveforms(self) -> tuple[Waveform, Waveform]:
+        """The commanded ``(T1, T2)`` over one cycle, leakage floors included."""
         floor1 = 1.0 / self.contrast_ratio_1
         floor2 = 1.0 / self.contrast_ratio_2
         t1 = self.t1 or cycle_waveform(self.t1_shape, start=floor1, stop=1.0,
@@ -208,6 +157,26 @@ class Rig:
         t2 = self.t2 or cycle_waveform(self.t2_shape, start=1.0, stop=stop2,
                                        ramp_fraction=self.ramp_fraction, n_knots=self.n_knots)
         return t1, t2
+
+    @cached_property
+    def _actual(self) -> tuple[Waveform, Waveform]:
+        targets = self.target_waveforms()
+        panels = rig_panels(self.panel, contrast_ratio_1=self.contrast_ratio_1,
+                            contrast_ratio_2=self.contrast_ratio_2)
+        if panels is None:
+            return targets
+        try:
+            d = design(targets[0], targets[1], panel1=panels[0], panel2=panels[1],
+                       period_us=int(self.period_us), sample_rate_hz=self.sample_rate_hz,
+                       pre_emphasis=self.pre_emphasis, ramp_fraction=self.ramp_fraction)
+        except ValueError as exc:
+            raise ValueError(f"rig with panel {self.panel!r}: {exc}") from exc
+        return d.to_waveforms()
+
+    def waveforms(self) -> tuple[Waveform, Waveform]:
+        """The transmitted ``(T1, T2)`` over one cycle: the targets through the panels
+        (one knot per generator sample), or the targets themselves for ``panel="ideal"``."""
+        return self._actual
 
     def irradiance(self, radiance: npt.ArrayLike, phase: npt.ArrayLike) -> np.ndarray:
         """``k_lens (T1(u) L + T2(u) L_const)`` (Eq. 9), broadcasting ``radiance`` and ``phase``."""
@@ -237,6 +206,9 @@ class Rig:
             "l_const": self.l_const,
             "k_lens": self.k_lens,
             "n_knots": self.n_knots,
+            "panel": self.panel,
+            "pre_emphasis": bool(self.pre_emphasis),
+            "sample_rate_hz": float(self.sample_rate_hz),
         }
         if self.t1 is not None:
             d["t1"] = {"name": self.t1.name, "phase": self.t1.phase.tolist(),
@@ -250,7 +222,8 @@ class Rig:
     def from_metadata(cls, d: dict[str, Any]) -> Rig:
         """Inverse of ``to_metadata``."""
         names = ("period_us", "ramp_fraction", "t1_shape", "t2_shape", "contrast_ratio_1",
-                 "contrast_ratio_2", "t2_stop", "l_const", "k_lens", "n_knots")
+                 "contrast_ratio_2", "t2_stop", "l_const", "k_lens", "n_knots", "panel",
+                 "pre_emphasis", "sample_rate_hz")
         kw: dict[str, Any] = {k: d[k] for k in names if k in d}
         for name in ("t1", "t2"):
             if name in d:

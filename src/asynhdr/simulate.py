@@ -1,8 +1,23 @@
-"""Simulate the rig: scene radiance -> two modulated light paths -> DVS pixels -> recording."""
+"""Simulate the rig: scene radiance -> two modulated light paths -> DVS pixels -> recording.
+
+One pixel model (:mod:`asynhdr.sensor.pixel`) reads each pixel's signal from the
+photoreceptor (:mod:`asynhdr.sensor.photoreceptor`); two engines compute that signal:
+
+- ``"exact"`` (static scenes): without the photoreceptor low-pass the signal is the
+  sensor irradiance itself, piecewise linear in time, and every crossing time is solved
+  exactly; with the low-pass, the photoreceptor output is integrated once per value of a
+  log-radiance grid (a pixel's output depends only on its radiance) and each pixel
+  interpolates between its two neighbouring rows;
+- ``"stepped"``: each pixel's own signal is integrated on the time grid (moving scenes,
+  and an independent check of the table).
+
+The tolerances of both, against a fine-step integration, are in docs/sensor.md.
+"""
 
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable
 from typing import Any, Protocol
 
@@ -12,9 +27,26 @@ from asynhdr import __version__
 from asynhdr.events import EVENT_DTYPE, Recording
 from asynhdr.rig import Rig
 from asynhdr.sensor._rng import seed_from
-from asynhdr.sensor.exact import ExactState, cycle_pieces, simulate_cycle_exact
-from asynhdr.sensor.noise import apply_arbiter, background_events, draw_defects, merge_sorted
+from asynhdr.sensor.noise import (
+    NoiseArrivals,
+    apply_arbiter,
+    draw_defects,
+    merge_sorted,
+    noise_arrivals,
+)
 from asynhdr.sensor.params import SensorParams, get_preset
+from asynhdr.sensor.photoreceptor import (
+    DEFAULT_DLOG_RADIANCE,
+    DEFAULT_DT_US,
+    Lowpass,
+    irradiance_rows,
+    lowpass_rows,
+    pixel_rows,
+    radiance_grid,
+    row_runs,
+    time_grid,
+)
+from asynhdr.sensor.pixel import PixelState, cycle_pieces, fire_cycle, gather_sorted
 
 __all__ = ["ENGINES", "draw_thresholds", "simulate"]
 
@@ -22,6 +54,15 @@ logger = logging.getLogger(__name__)
 
 Progress = Callable[[int, int], None]
 """``progress(done, total)``, called after each cycle."""
+
+ENGINES = ("exact", "stepped")
+
+_JITTER_SPAN = 8.6
+"""Largest |z| of a hash-normal draw (Box-Muller from 53-bit uniforms): bounds the
+timestamps' spread around the cycle."""
+
+_STEPPED_CHUNK = 2048
+"""Pixels integrated at once by the stepped engine (their rows are held in memory)."""
 
 
 class _HasRadiance(Protocol):
@@ -65,6 +106,8 @@ def _as_radiance(scene: Any, *, frames: bool = False) -> tuple[np.ndarray, dict[
     if not np.issubdtype(radiance.dtype, np.floating) and \
             not np.issubdtype(radiance.dtype, np.integer):
         raise ValueError(f"scene radiance must be numeric, got dtype {radiance.dtype}")
+    if radiance.size == 0:
+        raise ValueError(f"scene radiance is empty (shape {radiance.shape})")
     bad = ~np.isfinite(radiance)
     if bad.any():
         raise ValueError(f"scene radiance has {int(bad.sum())} NaN or infinite values")
@@ -75,7 +118,7 @@ def _as_radiance(scene: Any, *, frames: bool = False) -> tuple[np.ndarray, dict[
 
 def _concat_sorted(chunks: list[np.ndarray]) -> np.ndarray:
     """Concatenate per-cycle chunks, each sorted; where late events of one cycle reach
-    into the next (lag, latency, jitter), merge the overlap stably."""
+    into the next (latency, jitter), merge the overlap stably."""
     if not chunks:
         return np.zeros(0, EVENT_DTYPE)
     out: list[np.ndarray] = [chunks[0]]
@@ -93,7 +136,192 @@ def _concat_sorted(chunks: list[np.ndarray]) -> np.ndarray:
     return out[0] if len(out) == 1 else np.concatenate(out)
 
 
-ENGINES = ("exact", "stepped")
+def _frame_weights(times_us: np.ndarray, t_abs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Frame index ``i`` and weight ``w`` so that ``L = (1 - w) L_i + w L_{i+1}``."""
+    nf = times_us.size
+    if nf == 1:
+        return np.zeros(t_abs.size, dtype=np.int64), np.zeros(t_abs.size)
+    i = np.clip(np.searchsorted(times_us, t_abs, side="right") - 1, 0, nf - 2)
+    w = (t_abs - times_us[i]) / (times_us[i + 1] - times_us[i])
+    return i.astype(np.int64), np.clip(w, 0.0, 1.0)
+
+
+def _check_frame_times(frame_times_us: Any, n_frames: int) -> np.ndarray:
+    times = np.asarray(frame_times_us, dtype=np.float64)
+    if times.shape != (n_frames,):
+        raise ValueError(f"frame_times_us must have one time per frame ({n_frames}), got "
+                         f"shape {times.shape}")
+    if not np.all(np.isfinite(times)) or np.any(np.diff(times) <= 0):
+        raise ValueError("frame_times_us must be finite and strictly increasing")
+    return times
+
+
+class _Engine:
+    """What one engine needs to run a cycle of the whole array."""
+
+    def __init__(self, *, kind: str, rig: Rig, sensor: SensorParams, frames: np.ndarray,
+                 times_us: np.ndarray, dt_us: float, dlog_radiance: float,
+                 width: int, t0_us: int) -> None:
+        self.kind = kind
+        self.rig = rig
+        self.width = width
+        self.frames = frames  # (n_pixels, n_frames)
+        self.times_us = times_us
+        w1, w2 = rig.waveforms()
+        if np.array_equal(w1.phase, w2.phase):
+            knots, t1v, t2v = w1.phase, w1.values, w2.values
+        else:
+            knots = np.union1d(w1.phase, w2.phase)
+            t1v, t2v = w1(knots), w2(knots)
+        self.w1, self.w2 = w1, w2
+        period = float(rig.period_us)
+        lum_min = float(frames.min())
+        if not float(np.min(lum_min * t1v + rig.l_const * t2v)) > 0:
+            raise ValueError(
+                "the sensor irradiance reaches zero during the cycle (T2 closes fully while "
+                "some pixels have zero radiance); give the panels a leakage floor (contrast "
+                "ratio)")
+        self.lowpass = (Lowpass(sensor.tau_ref_us * (sensor.cutoff_irradiance
+                                                      + sensor.dark_irradiance),
+                                sensor.dark_irradiance, sensor.tau_max_us)
+                        if sensor.cutoff_hz > 0 else None)
+        moving = frames.shape[1] > 1
+        if kind == "exact" and self.lowpass is None:
+            self.s = np.asarray(knots, dtype=np.float64) * period
+            self.a1 = rig.k_lens * np.asarray(t1v, dtype=np.float64)
+            self.b2 = rig.k_lens * rig.l_const * np.asarray(t2v, dtype=np.float64)
+        else:
+            tau_min = None
+            if self.lowpass is not None:
+                i_max = rig.k_lens * (float(frames.max()) * float(np.max(t1v))
+                                      + rig.l_const * float(np.max(t2v)))
+                tau_min = min(self.lowpass.tau_num / (i_max + self.lowpass.dark_irradiance),
+                              self.lowpass.tau_max_us)
+            self._grid_args = dict(phase=knots, t1=t1v, t2=t2v, period_us=period, dt_us=dt_us,
+                                   tau_min_us=tau_min)
+            self._set_grid(None)
+        npix = frames.shape[0]
+        self.pix = np.arange(npix, dtype=np.int64)
+        if kind == "exact" and self.lowpass is None:
+            self.rows = irradiance_rows(self.a1, self.b2)
+            self.pieces = cycle_pieces(self.rows[0], self.rows[1])
+            self.ia = np.zeros(npix, dtype=np.int64)
+            self.ib = np.ones(npix, dtype=np.int64)
+            self.wa = np.ascontiguousarray(frames[:, 0])
+            self.wb = np.ones(npix)
+            self.ref0 = np.log(self.wa * self.a1[0] + self.b2[0])
+        elif kind == "exact":
+            t1max = float(np.max(t1v))
+            floor = 1e-7 * rig.l_const * float(np.min(t2v)) / max(t1max, 1e-300)
+            self.grid_radiance, lower, w = radiance_grid(frames[:, 0], dlog=dlog_radiance,
+                                                         floor=floor)
+            self.ia = lower
+            self.ib = lower + 1
+            self.wa = 1.0 - w
+            self.wb = w
+            self.y = np.log(self.a1[0] * self.grid_radiance + self.b2[0])
+            self.pairs, self.run_key = np.unique(lower, return_inverse=True)
+            self.run_key = self.run_key.astype(np.int64)
+            self.ref0 = self.wa * self.y[self.ia] + self.wb * self.y[self.ib]
+        else:
+            lum0 = frames[:, 0] if not moving else self._lum_at(np.array([float(t0_us)]))[:, 0]
+            irr0 = rig.k_lens * (float(w1(0.0)) * lum0 + float(w2(0.0)) * rig.l_const)
+            self.y = np.log(irr0)
+            self.ref0 = self.y.copy()
+
+    def _set_grid(self, extra_us: np.ndarray | None) -> None:
+        self.s = time_grid(**self._grid_args, extra_us=extra_us)  # type: ignore[arg-type]
+        u = self.s / self.rig.period_us
+        self.a1 = self.rig.k_lens * self.w1(u)
+        self.b2 = self.rig.k_lens * self.rig.l_const * self.w2(u)
+
+    def _lum_at(self, t_abs: np.ndarray) -> np.ndarray:
+        fa, fw = _frame_weights(self.times_us, t_abs)
+        f = self.frames
+        if f.shape[1] == 1:
+            return np.repeat(f[:, :1], t_abs.size, axis=1)
+        return f[:, fa] + fw * (f[:, fa + 1] - f[:, fa])
+
+    def irradiance_at(self, t_start_us: int) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
+        rig = self.rig
+
+        def at(pix: np.ndarray, t_off_us: np.ndarray) -> np.ndarray:
+            u = np.asarray(t_off_us) / rig.period_us
+            f = self.frames
+            if f.shape[1] == 1:
+                lum = f[pix, 0]
+            else:
+                fa, fw = _frame_weights(self.times_us, t_start_us + np.asarray(t_off_us))
+                lum = f[pix, fa] + fw * (f[pix, fa + 1] - f[pix, fa])
+            return rig.k_lens * (self.w1(u) * lum + self.w2(u) * rig.l_const)
+
+        return at
+
+    def run_cycle(self, *, cycle: int, t_start_us: int, state: PixelState, c_on: np.ndarray,
+                  c_off: np.ndarray, alive: np.ndarray, noise: NoiseArrivals, seed: int,
+                  sensor: SensorParams, t_lo: int, nbins: int) -> tuple[np.ndarray, int]:
+        common = dict(c_on=c_on, c_off=c_off, state=state, alive=alive, seed=seed, cycle=cycle,
+                      reset_noise_sigma=sensor.reset_noise_sigma,
+                      refractory_us=sensor.refractory_us, latency_us=sensor.latency_us,
+                      jitter_sigma_us=sensor.jitter_sigma_us,
+                      period_us=float(self.rig.period_us), t_lo=t_lo, nbins=nbins)
+        if self.kind == "exact" and self.lowpass is None:
+            counts, st, sp, off, lost = fire_cycle(
+                self.pix, self.s, self.rows, self.ia, self.ib, self.wa, self.wb,
+                log_domain=False, pieces=self.pieces, run_key=None, run_off=None,
+                run_tab=None, noise_off=noise.offsets, noise_t=noise.t_us,
+                noise_pol=noise.polarity, **common)  # type: ignore[arg-type]
+            ev = gather_sorted(off, counts, st, sp, self.pix, width=self.width,
+                               t_first_us=t_start_us + t_lo, nbins=nbins)
+            return ev, lost
+        if self.kind == "exact":
+            assert self.lowpass is not None
+            rows, y_end = lowpass_rows(self.grid_radiance, self.a1, self.b2, self.s, self.y,
+                                       self.lowpass)
+            self.y = y_end
+            run_off, run_tab = row_runs(rows, self.pairs, self.pairs + 1)
+            counts, st, sp, off, lost = fire_cycle(
+                self.pix, self.s, rows, self.ia, self.ib, self.wa, self.wb, log_domain=True,
+                pieces=None, run_key=self.run_key, run_off=run_off, run_tab=run_tab,
+                noise_off=noise.offsets, noise_t=noise.t_us, noise_pol=noise.polarity,
+                **common)  # type: ignore[arg-type]
+            ev = gather_sorted(off, counts, st, sp, self.pix, width=self.width,
+                               t_first_us=t_start_us + t_lo, nbins=nbins)
+            return ev, lost
+        # stepped: each pixel's own row, a chunk of pixels at a time
+        npix = self.pix.size
+        if self.frames.shape[1] > 1:
+            self._set_grid(self.times_us - t_start_us)
+        fa, fw = _frame_weights(self.times_us, t_start_us + self.s)
+        all_counts: list[np.ndarray] = []
+        all_t: list[np.ndarray] = []
+        all_p: list[np.ndarray] = []
+        lost_total = 0
+        for lo in range(0, npix, _STEPPED_CHUNK):
+            hi = min(npix, lo + _STEPPED_CHUNK)
+            rows, y_end = pixel_rows(self.frames[lo:hi], fa, fw, self.a1, self.b2, self.s,
+                                     self.y[lo:hi], self.lowpass)
+            self.y[lo:hi] = y_end
+            local = np.arange(hi - lo, dtype=np.int64)
+            run_off, run_tab = row_runs(rows, local, local)
+            nz = noise.select(lo, hi)
+            counts, st, sp, off, lost = fire_cycle(
+                self.pix[lo:hi], self.s, rows, local, local, np.ones(hi - lo),
+                np.zeros(hi - lo), log_domain=self.lowpass is not None, pieces=None,
+                run_key=local, run_off=run_off, run_tab=run_tab, noise_off=nz.offsets,
+                noise_t=nz.t_us, noise_pol=nz.polarity, **common)  # type: ignore[arg-type]
+            lost_total += lost
+            keep = (np.arange(st.size) - np.repeat(off[:-1], np.diff(off))
+                    < np.repeat(counts, np.diff(off)))
+            all_counts.append(counts)
+            all_t.append(st[keep])
+            all_p.append(sp[keep])
+        counts = np.concatenate(all_counts)
+        off = np.zeros(npix + 1, dtype=np.int64)
+        np.cumsum(counts, out=off[1:])
+        ev = gather_sorted(off, counts, np.concatenate(all_t), np.concatenate(all_p), self.pix,
+                           width=self.width, t_first_us=t_start_us + t_lo, nbins=nbins)
+        return ev, lost_total
 
 
 def simulate(
@@ -107,17 +335,18 @@ def simulate(
     thresholds: tuple[np.ndarray, np.ndarray] | None = None,
     sensor_seed: int | None = None,
     engine: str = "exact",
-    dt_us: float = 5.0,
+    dt_us: float = DEFAULT_DT_US,
+    dlog_radiance: float = DEFAULT_DLOG_RADIANCE,
     frame_times_us: np.ndarray | None = None,
     progress: Progress | None = None,
 ) -> Recording:
-    """Simulate ``n_cycles`` modulation cycles of a static scene.
+    """Simulate ``n_cycles`` modulation cycles.
 
     Parameters
     ----------
     scene : a ``Scene`` (anything with a ``radiance`` attribute) or a ``(height, width)``
         radiance array, in the same unit as ``rig.l_const``.
-    rig : the optics (default ``Rig()``).
+    rig : the optics (default ``Rig()``), its panels included.
     sensor : pixel parameters or a preset name.
     n_cycles : number of cycles; one rising trigger at each cycle start.
     rng : seed or generator for everything random in this capture (reset noise,
@@ -128,17 +357,21 @@ def simulate(
     sensor_seed : when given, the sensor's frozen maps (threshold mismatch, hot and
         dead pixels) are drawn from this seed rather than from ``rng``: the same seed
         is the same physical sensor across captures.
-    engine : ``"exact"`` (crossing times computed; the photoreceptor low-pass as the lag
-        of a slowly varying input) or ``"stepped"`` (time-stepped integration of the
-        pixel state with step ``dt_us``: exact low-pass, any waveform).
+    engine : ``"exact"`` (static scenes: crossings solved on the exact irradiance, or on
+        the photoreceptor output tabulated over radiance) or ``"stepped"`` (each pixel's
+        signal integrated on the time grid; needed for a moving scene).
+    dt_us : largest step of the time grid where a signal is integrated (the
+        photoreceptor low-pass, the stepped engine).
+    dlog_radiance : step of the log-radiance grid of the exact engine's low-pass table.
     frame_times_us : for a moving scene, ``scene`` is ``(n_frames, height, width)`` and
-        these are the frames' times (µs from ``t0_us``; radiance is interpolated linearly
-        between them and held outside). Needs ``engine="stepped"``.
+        these are the frames' times (µs, same clock as ``t0_us``; radiance is linear in
+        time between frames and held outside them). Needs ``engine="stepped"``.
     progress : called as ``progress(done_cycles, n_cycles)``.
 
     Returns
     -------
-    A ``Recording`` whose metadata holds the rig, the sensor, the seeds and what the
+    A ``Recording`` whose metadata holds the rig (its panel included), the sensor, the
+    engine, the seeds, how many events the signal and the background made, and what the
     readout did (``"readout"``: emitted, delivered, delayed, dropped events).
     """
     rig = rig or Rig()
@@ -146,10 +379,13 @@ def simulate(
         sensor = get_preset(sensor)
     if int(n_cycles) != n_cycles or n_cycles < 1:
         raise ValueError(f"n_cycles must be a whole number >= 1, got {n_cycles}")
+    if int(t0_us) != t0_us:
+        raise ValueError(f"t0_us must be a whole number of µs, got {t0_us}")
     if engine not in ENGINES:
         raise ValueError(f"unknown engine {engine!r}; expected one of {ENGINES}")
-    if sensor.refractory_us >= rig.period_us:
-        raise ValueError(f"refractory_us ({sensor.refractory_us}) must be shorter than the "
+    dead_us = sensor.refractory_us + sensor.latency_us
+    if dead_us >= rig.period_us:
+        raise ValueError(f"refractory_us + latency_us ({dead_us:g}) must be shorter than the "
                          f"cycle (period_us={rig.period_us})")
     moving = frame_times_us is not None
     radiance, info = _as_radiance(scene, frames=moving)
@@ -158,6 +394,14 @@ def simulate(
     height, width = radiance.shape[-2:]
     if width > 65535 or height > 65535:
         raise ValueError(f"sensor too large for uint16 coordinates: {width}x{height}")
+    npix = width * height
+    if moving:
+        times = _check_frame_times(frame_times_us, radiance.shape[0])
+        frames = np.ascontiguousarray(radiance.reshape(radiance.shape[0], -1).T,
+                                      dtype=np.float64)
+    else:
+        times = np.zeros(1)
+        frames = np.ascontiguousarray(radiance.reshape(-1, 1), dtype=np.float64)
     gen = np.random.default_rng(rng)
     sensor_gen = gen if sensor_seed is None else np.random.default_rng(sensor_seed)
 
@@ -170,91 +414,56 @@ def simulate(
                 f"thresholds must have the sensor's shape {(height, width)}, got {c_on.shape} "
                 f"and {c_off.shape}"
             )
-        if (c_on <= 0).any() or (c_off <= 0).any():
-            raise ValueError("thresholds must be positive")
-    defects = draw_defects(sensor, n_pixels=width * height, rng=sensor_gen)
+        if not (np.all(np.isfinite(c_on)) and np.all(np.isfinite(c_off))) or \
+                (c_on <= 0).any() or (c_off <= 0).any():
+            raise ValueError("thresholds must be finite and positive")
+    defects = draw_defects(sensor, n_pixels=npix, rng=sensor_gen)
     hash_seed = seed_from(gen)
-
-    w1, w2 = rig.waveforms()
-    if not np.array_equal(w1.phase, w2.phase):
-        knots = np.union1d(w1.phase, w2.phase)
-        t1v, t2v = w1(knots), w2(knots)
-    else:
-        knots, t1v, t2v = w1.phase, w1.values, w2.values
-    still = radiance.mean(axis=0) if moving else radiance
-    rho = (still.astype(np.float64) / rig.l_const).ravel()
-    e_min = float(np.min(float(radiance.min()) / rig.l_const * t1v + t2v))
-    if not e_min > 0:
-        raise ValueError(
-            "the sensor irradiance reaches zero during the cycle (T2 closes fully while some "
-            "pixels have zero radiance); give the panels a leakage floor (contrast ratio)"
-        )
+    eng = _Engine(kind=engine, rig=rig, sensor=sensor, frames=frames, times_us=times,
+                  dt_us=dt_us, dlog_radiance=dlog_radiance, width=width, t0_us=int(t0_us))
+    state = PixelState(eng.ref0)
+    alive = np.ones(npix, dtype=np.int8)
+    alive[defects.dead] = 0
     c_on_f = np.ascontiguousarray(c_on.ravel())
     c_off_f = np.ascontiguousarray(c_off.ravel())
     starts = rig.cycle_starts_us(n_cycles, t0_us=t0_us)
-    scale = rig.k_lens * rig.l_const
-    rad_f = still.astype(np.float64).ravel()  # a moving scene's mean, for noise rates
+    spread = _JITTER_SPAN * sensor.jitter_sigma_us
+    t_lo = -(math.ceil(spread) + 1) if spread > 0 else 0
+    nbins = math.ceil(rig.period_us + sensor.latency_us + spread) + 2 - t_lo
+    no_noise = NoiseArrivals(np.zeros(npix + 1, np.int64), np.zeros(0), np.zeros(0, np.int8))
 
-    def irradiance_at(pix: np.ndarray, t_off_us: np.ndarray) -> np.ndarray:
-        u = np.asarray(t_off_us) / rig.period_us
-        return rig.k_lens * (w1(u) * rad_f[pix] + w2(u) * rig.l_const)
-
-    signal: list[np.ndarray] = []
-    alive = np.ones(width * height, dtype=np.int8)
-    alive[defects.dead] = 0
-    if engine == "exact":
-        pieces = cycle_pieces(t1v, t2v)
-        state = ExactState(np.log(rho * t1v[0] + t2v[0]))
-        for k in range(n_cycles):
-            signal.append(simulate_cycle_exact(
-                rho, c_on_f, c_off_f, state, knots, t1v, t2v, width=width,
-                period_us=rig.period_us, t_start_us=int(starts[k]), pieces=pieces, cycle=k,
-                seed=hash_seed, reset_noise_sigma=sensor.reset_noise_sigma,
-                refractory_us=sensor.refractory_us, irradiance_scale=scale,
-                tau_ref_us=sensor.tau_ref_us, cutoff_irradiance=sensor.cutoff_irradiance,
-                dark_irradiance=sensor.dark_irradiance, tau_max_us=sensor.tau_max_us,
-                latency_us=sensor.latency_us, jitter_sigma_us=sensor.jitter_sigma_us,
-                alive=alive))
-            if progress is not None:
-                progress(k + 1, n_cycles)
-    else:
-        from asynhdr.sensor.stepped import simulate_stepped
-
-        stepped = simulate_stepped(
-            radiance.astype(np.float64), rig=rig, sensor=sensor, n_cycles=n_cycles,
-            c_on=c_on, c_off=c_off, seed=hash_seed, dt_us=dt_us, t0_us=t0_us,
-            frame_times_us=frame_times_us, progress=progress)
-        stepped = _shift_times(stepped, sensor, hash_seed)
-        signal.append(stepped)
-
-    n_signal = sum(int(c.size) for c in signal)
-    chunks = list(signal)
-    n_noise = 0
-    if sensor.has_noise_events:
-        noise = [background_events(sensor, irradiance_at=irradiance_at, n_pixels=width * height,
-                                   width=width, t_start_us=int(starts[k]),
-                                   duration_us=float(rig.period_us), defects=defects, rng=gen)
-                 for k in range(n_cycles)]
-        n_noise = sum(int(c.size) for c in noise)
-        if engine == "exact":
-            chunks = [merge_sorted(a, b) for a, b in zip(signal, noise, strict=True)]
+    chunks: list[np.ndarray] = []
+    n_arrivals = 0
+    n_lost = 0
+    for k in range(n_cycles):
+        t_start = int(starts[k])
+        if sensor.has_noise_events:
+            noise = noise_arrivals(sensor, irradiance_at=eng.irradiance_at(t_start),
+                                   n_pixels=npix, duration_us=float(rig.period_us),
+                                   defects=defects, rng=gen)
         else:
-            chunks = [merge_sorted(signal[0], _concat_sorted(noise))]
+            noise = no_noise
+        ev, lost = eng.run_cycle(cycle=k, t_start_us=t_start, state=state, c_on=c_on_f,
+                                 c_off=c_off_f, alive=alive, noise=noise, seed=hash_seed,
+                                 sensor=sensor, t_lo=t_lo, nbins=nbins)
+        n_arrivals += int(noise.t_us.size)
+        n_lost += lost
+        chunks.append(ev)
+        if progress is not None:
+            progress(k + 1, n_cycles)
     events = _concat_sorted(chunks)
-    if defects.dead.size and engine != "exact":
-        # the exact engine and the background skip dead pixels themselves
-        keep = alive[events["y"].astype(np.int64) * width + events["x"]].astype(bool)
-        if not keep.all():
-            events = events[keep]
     step = sensor.timestamp_resolution_us
     if step > 1:
         events["t"] = (events["t"] // step) * step
+    n_emitted = int(events.size)
+    n_background = n_arrivals - n_lost
     events, stats = apply_arbiter(events, sensor)
-    n = events.size
     metadata: dict[str, Any] = {
         "simulated": True,
         "asynhdr_version": __version__,
         "engine": engine,
+        "dt_us": float(dt_us),
+        "dlog_radiance": float(dlog_radiance),
         "rig": rig.to_metadata(),
         "sensor": sensor.to_metadata(),
         "n_cycles": int(n_cycles),
@@ -263,26 +472,14 @@ def simulate(
         "sensor_seed": sensor_seed,
         "radiance_unit": info.get("unit", "relative"),
         "scene": info.get("name", ""),
-        "counts": {"signal": n_signal, "background": n_noise,
+        "counts": {"signal": n_emitted - n_background, "background": n_background,
+                   "background_lost_in_dead_time": n_lost,
                    "hot_pixels": int(defects.hot.size), "dead_pixels": int(defects.dead.size)},
         "readout": {"emitted": stats.emitted, "delivered": stats.delivered,
                     "delayed": stats.delayed, "dropped": stats.dropped,
                     "max_delay_us": stats.max_delay_us},
     }
-    logger.info("simulated %d events over %d cycles on %dx%d", n, n_cycles, width, height)
+    logger.info("simulated %d events over %d cycles on %dx%d (%s engine)", events.size,
+                n_cycles, width, height, engine)
     return Recording(events=events, width=width, height=height,
                      triggers=rig.triggers(n_cycles, t0_us=t0_us), metadata=metadata)
-
-
-def _shift_times(events: np.ndarray, sensor: SensorParams, seed: int) -> np.ndarray:
-    """Latency and jitter for engines that do not apply them (then re-sorted stably)."""
-    if sensor.latency_us <= 0 and sensor.jitter_sigma_us <= 0:
-        return events
-    g = np.random.default_rng(seed)
-    t = events["t"].astype(np.float64) + sensor.latency_us
-    if sensor.jitter_sigma_us > 0:
-        t += g.normal(0.0, sensor.jitter_sigma_us, t.size)
-    out = events.copy()
-    out["t"] = np.floor(t).astype(np.int64)
-    order = np.argsort(out["t"], kind="stable")
-    return out[order]

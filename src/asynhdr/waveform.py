@@ -34,7 +34,7 @@ import numpy as np
 
 from asynhdr._atomic import atomic_path
 from asynhdr.panel import _RANGE_TOL, Panel, _periodic_state
-from asynhdr.rig import Waveform
+from asynhdr.transmittance import Waveform
 
 __all__ = [
     "DEFAULT_SAMPLE_RATE_HZ",
@@ -380,7 +380,7 @@ def design(
     channels = []
     for k, (tw, panel) in enumerate(((target_t1, panel1), (target_t2, panel2)), start=1):
         if not isinstance(tw, Waveform):
-            raise ValueError(f"target_t{k} must be an asynhdr.rig.Waveform, got "
+            raise ValueError(f"target_t{k} must be an asynhdr.transmittance.Waveform, got "
                              f"{type(tw).__name__}")
         if not isinstance(panel, Panel):
             raise ValueError(f"panel{k} must be an asynhdr.panel.Panel, got "

@@ -1,14 +1,15 @@
 """Events that do not come from the signal, and what the readout does to the stream.
 
-- Background activity: leak events (ON, rate ``leak_rate_hz``, independent of light)
-  and shot-noise events (ON or OFF with equal probability, rate ``shot_noise_rate_hz``
+- Background activity: leak arrivals (ON, rate ``leak_rate_hz``, independent of light)
+  and shot-noise arrivals (ON or OFF with equal probability, rate ``shot_noise_rate_hz``
   in the dark, falling linearly to ``shot_noise_bright_factor`` times that at
   ``shot_noise_full_irradiance``; v2e's model). Each is a Poisson process per pixel:
   exponential inter-arrival times, drawn exactly (the irradiance-dependent rate by
-  thinning a process at the dark rate). Noise events are added to the stream; they do
-  not move the pixel's comparator reference (IEBCS's model).
-- Hot pixels fire ON and OFF events at ``hot_pixel_rate_hz``; dead pixels fire nothing.
-  Both sets are frozen per sensor.
+  thinning a process at the dark rate). The arrivals go through the pixel
+  (:mod:`asynhdr.sensor.pixel`): one that finds the pixel ready fires it and resets it
+  like a signal event; one that finds it blind is lost.
+- Hot pixels are pixels whose arrivals come at ``hot_pixel_rate_hz``; dead pixels fire
+  nothing. Both sets are frozen per sensor.
 - The arbiter: the whole array shares one readout that serves at most
   ``max_event_rate_hz`` events per second. Events queue (``delay``: timestamps move
   later) or are lost when the queue is full (``drop``).
@@ -26,11 +27,12 @@ from asynhdr.sensor.params import SensorParams
 
 __all__ = [
     "ArbiterStats",
+    "NoiseArrivals",
     "PixelDefects",
     "apply_arbiter",
-    "background_events",
     "draw_defects",
     "merge_sorted",
+    "noise_arrivals",
     "poisson_times",
 ]
 
@@ -76,22 +78,49 @@ def poisson_times(rate_hz: float, *, n_pixels: int, duration_us: float,
     return pix[order].astype(np.int64), t[order]
 
 
-def background_events(
+@dataclass(frozen=True, eq=False)
+class NoiseArrivals:
+    """Background-event arrivals of one cycle, grouped by pixel.
+
+    Attributes
+    ----------
+    offsets : int64 ``(n_pixels + 1,)``: pixel ``p``'s arrivals are
+        ``offsets[p]:offsets[p + 1]``.
+    t_us : float64 arrival times, µs from the cycle's start, increasing per pixel.
+    polarity : int8, +1 or -1.
+    """
+
+    offsets: np.ndarray
+    t_us: np.ndarray
+    polarity: np.ndarray
+
+    def select(self, lo: int, hi: int) -> NoiseArrivals:
+        """The arrivals of pixels ``lo .. hi - 1`` (offsets from 0)."""
+        a, b = int(self.offsets[lo]), int(self.offsets[hi])
+        return NoiseArrivals(self.offsets[lo:hi + 1] - a, self.t_us[a:b], self.polarity[a:b])
+
+
+def noise_arrivals(
     sensor: SensorParams,
     *,
     irradiance_at: object,
     n_pixels: int,
-    width: int,
-    t_start_us: int,
     duration_us: float,
     defects: PixelDefects,
     rng: np.random.Generator,
-) -> np.ndarray:
-    """Leak, shot-noise and hot-pixel events over ``[t_start, t_start + duration)``,
-    none on dead pixels.
+) -> NoiseArrivals:
+    """Leak, shot-noise and hot-pixel arrivals over ``[0, duration_us)``, none on dead
+    pixels. Each is a Poisson process per pixel (:func:`poisson_times`):
 
-    ``irradiance_at(pixel_index, t_offset_us) -> irradiance`` gives the sensor
-    irradiance for the shot-noise rate. Returns events sorted by time.
+    - leak: ON, ``leak_rate_hz``, independent of light;
+    - shot noise: ON or OFF with equal probability, ``shot_noise_rate_hz`` in the dark,
+      falling linearly with irradiance to ``shot_noise_bright_factor`` of it at
+      ``shot_noise_full_irradiance`` (v2e's model), drawn by thinning: an arrival of the
+      dark-rate process is kept with probability ``rate(I(t)) / rate_dark``;
+    - hot pixels: ON or OFF, ``hot_pixel_rate_hz``.
+
+    ``irradiance_at(pixel_index, t_us) -> irradiance`` gives the sensor irradiance for the
+    thinning. The pixel model (:mod:`asynhdr.sensor.pixel`) decides which arrivals fire.
     """
     parts_p: list[np.ndarray] = []
     parts_t: list[np.ndarray] = []
@@ -121,21 +150,17 @@ def background_events(
         parts_t.append(t)
         parts_pol.append(np.where(rng.random(pix.size) < 0.5, 1, -1).astype(np.int8))
     if not parts_p:
-        return np.zeros(0, EVENT_DTYPE)
+        return NoiseArrivals(np.zeros(n_pixels + 1, np.int64), np.zeros(0), np.zeros(0, np.int8))
     pix = np.concatenate(parts_p)
     t = np.concatenate(parts_t)
     pol = np.concatenate(parts_pol)
     if defects.dead.size:
         keep = ~np.isin(pix, defects.dead)
         pix, t, pol = pix[keep], t[keep], pol[keep]
-    ti = t_start_us + np.floor(t).astype(np.int64)
-    order = np.argsort(ti, kind="stable")
-    out = np.empty(pix.size, EVENT_DTYPE)
-    out["x"] = (pix % width)[order]
-    out["y"] = (pix // width)[order]
-    out["p"] = pol[order]
-    out["t"] = ti[order]
-    return out
+    order = np.lexsort((t, pix))
+    offsets = np.zeros(n_pixels + 1, dtype=np.int64)
+    np.cumsum(np.bincount(pix, minlength=n_pixels), out=offsets[1:])
+    return NoiseArrivals(offsets, t[order], pol[order])
 
 
 @nb.njit(cache=True)

@@ -1,0 +1,711 @@
+"""The pixel: comparator, reset, refractory period, latency, jitter and noise events.
+
+One model for every engine. Each pixel reads its signal ``V(t)`` (the log irradiance
+after the photoreceptor, or the irradiance itself when there is no low-pass) as a
+piecewise-linear function on the cycle's grid (:mod:`asynhdr.sensor.photoreceptor`)
+and keeps a reference level ``ref`` (log units). Per pixel and cycle:
+
+1. **Crossing.** The pixel is ready from ``t_ready`` on. The next signal crossing is the
+   first ``t_c >= t_ready`` where ``log V >= ref + c_on`` (ON) or ``<= ref - c_off``
+   (OFF), ``c_on``/``c_off`` the pixel's frozen thresholds. Within a grid interval the
+   crossing is solved exactly (linear interpolation of ``V``).
+2. **Noise events.** Background events (leak, shot noise, hot pixels) arrive as Poisson
+   processes (:mod:`asynhdr.sensor.noise`). An arrival at ``t_n`` while the pixel is
+   ready fires the pixel, exactly like a crossing, with the arrival's polarity; an
+   arrival while the pixel is blind is lost. Signal and noise events alike reset the
+   pixel and start its dead time.
+3. **Firing.** A crossing fires at ``t_f = t_c + jitter_sigma_us z`` (Gaussian timing
+   noise of the front end, ``z`` a standard normal draw), never before the end of the
+   previous dead time; a noise arrival fires at ``t_f = t_n``. The timestamp is
+   ``t_f + latency_us``, floored to whole µs (then to ``timestamp_resolution_us``).
+4. **Reset.** The pixel is acknowledged (``latency_us`` after firing), resets, and is
+   blind for ``refractory_us``: its dead time ends at
+   ``t_end = t_f + latency_us + refractory_us``, when the new reference is taken:
+   ``ref = log V(t_end) + reset_noise_sigma z'``. Without latency, jitter and refractory
+   period (the ideal pixel) a crossing resets the reference to the level just crossed,
+   ``ref +/- c`` (plus reset noise), and the pixel is ready at once.
+
+So no two timestamps of a pixel are closer than ``refractory_us + latency_us``, signal
+or noise. ``z`` and ``z'`` of a pixel's ``n``-th event of cycle ``m`` are the two
+Box-Muller outputs of :func:`asynhdr.sensor._rng.hash_normal2` at ``(seed, pixel, m,
+n)``: the same seed gives the same events on any number of threads.
+
+Finding crossings: the grid is cut into runs on which the pixel's ``V`` is monotone
+(for the exact irradiance, per pixel from the turning point of ``L T1 + L_const T2``
+inside each piece of the waveform; for tabulated rows, from the rows' own turns), so
+the next crossing of a level is a galloping search from the current point. Runs whose
+direction the two interpolated rows do not agree on are scanned point by point.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+from asynhdr.events import EVENT_DTYPE
+from asynhdr.sensor._rng import hash_normal2
+
+__all__ = ["PixelState", "cycle_pieces", "fire_cycle", "gather_sorted"]
+
+_EPS = 1e-12
+_NEVER = -1e300
+_INF = 1e300
+
+
+class PixelState:
+    """What a pixel carries from one cycle to the next.
+
+    Attributes
+    ----------
+    ref : float64 reference level (log irradiance units).
+    ready : float64, µs relative to the next cycle's start: the end of the last dead time
+        (the pixel cannot fire before it).
+    pending : int8, 1 when the dead time ends after the cycle did: the reference is then
+        taken at ``ready`` in the next cycle.
+    pending_z : float64, the reset-noise draw of that pending reset.
+    """
+
+    def __init__(self, ref: np.ndarray) -> None:
+        self.ref = np.ascontiguousarray(ref, dtype=np.float64).copy()
+        n = self.ref.size
+        self.ready = np.full(n, _NEVER, dtype=np.float64)
+        self.pending = np.zeros(n, dtype=np.int8)
+        self.pending_z = np.zeros(n, dtype=np.float64)
+
+    def copy(self) -> PixelState:
+        out = PixelState(self.ref)
+        out.ready[:] = self.ready
+        out.pending[:] = self.pending
+        out.pending_z[:] = self.pending_z
+        return out
+
+    def restore(self, other: PixelState) -> None:
+        self.ref[:] = other.ref
+        self.ready[:] = other.ready
+        self.pending[:] = other.pending
+        self.pending_z[:] = other.pending_z
+
+
+# ----------------------------------------------------------------------------- runs
+
+
+def cycle_pieces(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cut the knot intervals into pieces on which ``wa a + wb b`` turns at most once for
+    every ``wa, wb >= 0``.
+
+    Returns an ``(n_pieces, 2)`` int64 array of ``[first interval, end interval)``. On a
+    piece, ``da`` has one sign (or is zero throughout with ``db`` of one sign) and
+    ``r = -db / da`` is monotone, so ``sign(wa da + wb db)`` switches at most once.
+    """
+    d1 = np.diff(np.asarray(a, dtype=np.float64))
+    d2 = np.diff(np.asarray(b, dtype=np.float64))
+    n = d1.size
+    pieces: list[tuple[int, int]] = []
+    start = 0
+    direction = 0
+
+    def sign(v: float) -> int:
+        return int(v > 0) - int(v < 0)
+
+    for j in range(1, n):
+        s_prev, s_cur = sign(d1[j - 1]), sign(d1[j])
+        cut = False
+        if s_cur != s_prev:
+            cut = True
+        elif s_cur == 0:
+            if sign(d2[j]) != sign(d2[j - 1]) and sign(d2[j]) != 0 and sign(d2[j - 1]) != 0:
+                cut = True
+        else:
+            r_prev = -d2[j - 1] / d1[j - 1]
+            r_cur = -d2[j] / d1[j]
+            # rounding in the knots makes r of a straight ramp wobble by ~1e-16: ignore
+            tol = 1e-9 * max(abs(r_prev), abs(r_cur), 1e-300)
+            step = sign(r_cur - r_prev) if abs(r_cur - r_prev) > tol else 0
+            if step != 0:
+                if direction == 0:
+                    direction = step
+                elif step != direction:
+                    cut = True
+        if cut:
+            pieces.append((start, j))
+            start = j
+            direction = 0
+    pieces.append((start, n))
+    return np.asarray(pieces, dtype=np.int64)
+
+
+@nb.njit(cache=True)
+def _pixel_runs(wa, wb, d1, d2, pieces, runs):
+    """Monotone runs ``[first knot, last knot, +1/-1]`` of ``wa a + wb b`` from the
+    pieces: a bisection finds the turning point inside each. Returns the count."""
+    nr = 0
+    for q in range(pieces.shape[0]):
+        a = pieces[q, 0]
+        b = pieces[q, 1]
+        pos_first = wa * d1[a] + wb * d2[a] >= 0.0
+        pos_last = wa * d1[b - 1] + wb * d2[b - 1] >= 0.0
+        if pos_first == pos_last:
+            m = b
+        else:
+            lo = a + 1
+            hi = b - 1
+            while lo < hi:
+                mid = (lo + hi) >> 1
+                if (wa * d1[mid] + wb * d2[mid] >= 0.0) == pos_last:
+                    hi = mid
+                else:
+                    lo = mid + 1
+            m = lo
+        runs[nr, 0] = a
+        runs[nr, 1] = m
+        runs[nr, 2] = 1 if pos_first else -1
+        nr += 1
+        if m < b:
+            runs[nr, 0] = m
+            runs[nr, 1] = b
+            runs[nr, 2] = 1 if pos_last else -1
+            nr += 1
+    return nr
+
+
+@nb.njit(cache=True, inline="always")
+def _runs_of(i, mode, wa, wb, d1, d2, pieces, run_key, run_off, run_tab, local):
+    """The runs of listed pixel ``i``: its own (mode 0, into ``local``) or shared."""
+    if mode == 0:
+        nr = _pixel_runs(wa, wb, d1, d2, pieces, local)
+        return local, nr
+    key = run_key[i]
+    lo = run_off[key]
+    return run_tab[lo:run_off[key + 1]], run_off[key + 1] - lo
+
+
+# ----------------------------------------------------------------------------- search
+
+
+@nb.njit(cache=True, inline="always")
+def _val(rows, ia, ib, wa, wb, k):
+    return wa * rows[ia, k] + wb * rows[ib, k]
+
+
+@nb.njit(cache=True, inline="always")
+def _interval(s, lo, hi, t):
+    """Largest ``k`` in ``[lo, hi]`` with ``s[k] <= t`` (``s[lo] <= t`` assumed)."""
+    while lo < hi:
+        mid = (lo + hi + 1) >> 1
+        if s[mid] <= t:
+            lo = mid
+        else:
+            hi = mid - 1
+    return lo
+
+
+@nb.njit(cache=True, inline="always")
+def _reaches(e, thr, up):
+    return (e >= thr) if up else (e <= thr)
+
+
+@nb.njit(cache=True, inline="always")
+def _bisect(rows, ia, ib, wa, wb, b, a, thr, up):
+    """First knot in ``[b, a]`` that reaches ``thr``, given that ``a`` does (branch-free
+    halving)."""
+    while b < a:
+        mid = (a + b) >> 1
+        hit = _reaches(_val(rows, ia, ib, wa, wb, mid), thr, up)
+        a = mid if hit else a
+        b = b if hit else mid + 1
+    return a
+
+
+@nb.njit(cache=True, inline="always")
+def _first(rows, ia, ib, wa, wb, lo, hi, thr, up, v_prev):
+    """First knot ``j`` in ``[lo, hi]`` where ``V_j >= thr`` (``up``; ``V`` non-decreasing
+    there) or ``V_j <= thr`` (non-increasing); ``hi + 1`` when none.
+
+    ``v_prev`` is ``V`` just before ``lo``. Secant steps from the local slope bracket the
+    level (the signal is smooth, so they land close), then a short scan or a bisection
+    finds the knot: few evaluations and few mispredicted branches.
+    """
+    v_lo = _val(rows, ia, ib, wa, wb, lo)
+    if _reaches(v_lo, thr, up):
+        return lo
+    if lo == hi:
+        return hi + 1
+    a = lo
+    va = v_lo
+    slope = v_lo - v_prev
+    b = hi + 1
+    for _ in range(4):
+        if (slope > 0.0) if up else (slope < 0.0):
+            ahead = (thr - va) / slope
+            g = a + 1 if ahead < 1.0 else (a + np.int64(ahead) if ahead < b - a else b - 1)
+        else:
+            g = min(a + 2, b - 1)
+        if g > hi:
+            g = hi
+        if g <= a:
+            break
+        e = _val(rows, ia, ib, wa, wb, g)
+        if _reaches(e, thr, up):
+            b = g
+            if b - a <= 1:
+                return b
+            # the crossing is in (a, b]: one more secant step inside
+            slope = (e - va) / (b - a)
+        else:
+            slope = (e - va) / (g - a)
+            a = g
+            va = e
+            if a == hi:
+                return hi + 1
+            if b - a <= 1:
+                return b
+    if b > hi:
+        # not bracketed yet: gallop forward from a
+        step = 1
+        while True:
+            g = min(hi, a + step)
+            if _reaches(_val(rows, ia, ib, wa, wb, g), thr, up):
+                b = g
+                break
+            if g == hi:
+                return hi + 1
+            a = g
+            step *= 2
+    return _bisect(rows, ia, ib, wa, wb, a + 1, b, thr, up)
+
+
+@nb.njit(cache=True, inline="always")
+def _advance(s, k, hi, t, h_max):
+    """Interval index containing ``t`` (``s[k] <= t``), at most ``hi``. No grid step is
+    longer than ``h_max``, so ``k + (t - s[k]) // h_max`` is never past the answer: jump
+    there, then step forward over the few shorter steps."""
+    j = k + np.int64((t - s[k]) / h_max)
+    if j > hi:
+        j = hi
+    while j < hi and s[j + 1] <= t:
+        j += 1
+    return j
+
+
+@nb.njit(cache=True, inline="always")
+def _run_at(runs, nr, r, t, s):
+    """Index of the run containing time ``t``, searching from run ``r`` either way."""
+    while r > 0 and s[runs[r, 0]] > t:
+        r -= 1
+    while r < nr - 1 and s[runs[r, 1]] <= t:
+        r += 1
+    return r
+
+
+@nb.njit(cache=True, inline="always")
+def _at(rows, ia, ib, wa, wb, s, k, t):
+    """``V(t)`` inside interval ``k``."""
+    va = _val(rows, ia, ib, wa, wb, k)
+    if t <= s[k]:
+        return va
+    vb = _val(rows, ia, ib, wa, wb, k + 1)
+    return va + (vb - va) * ((t - s[k]) / (s[k + 1] - s[k]))
+
+
+# ----------------------------------------------------------------------------- one cycle
+
+
+@nb.njit(cache=True, parallel=True)
+def _fire(pix, order, s, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pieces, run_key,
+          run_off, run_tab, c_on, c_off, ref, ready, pending, pending_z, alive, nz_off, nz_t,
+          nz_pol, seed, cycle, sigma, refr_us, lat_us, jit_us, period_us, offsets, slot_t,
+          slot_p, counts, overflow, n_lost, t_lo, nbins, block):
+    """Events of one cycle for the listed pixels ``pix`` (module docstring).
+
+    ``order`` lists blocks of ``block`` listed pixels in the order threads take them.
+    Per listed pixel ``i``: slots ``offsets[i] .. offsets[i + 1]`` receive the events
+    (time bin relative to ``t_lo`` and polarity); ``counts[i]`` is the number written,
+    ``overflow[i]`` is set when the slots ran out (the caller runs the cycle again),
+    ``n_lost[i]`` counts noise arrivals lost in dead time. State arrays are indexed by
+    the global pixel ``pix[i]``; noise arrivals by ``i``.
+    """
+    n = pix.shape[0]
+    pure = jit_us == 0.0 and lat_us == 0.0 and refr_us == 0.0
+    draws = jit_us > 0.0 or sigma > 0.0
+    h_max = 0.0
+    for kk in range(s.shape[0] - 1):
+        h_max = max(h_max, s[kk + 1] - s[kk])
+    nruns_max = 2 * pieces.shape[0] if mode == 0 else 1
+    nblk = order.shape[0]
+    for bi in nb.prange(nblk):
+        local = np.empty((nruns_max, 3), dtype=np.int64)
+        b0 = order[bi] * block
+        for i in range(b0, min(n, b0 + block)):
+            p = pix[i]
+            counts[i] = 0
+            n_lost[i] = 0
+            if alive[p] == 0:
+                continue
+            ra = ia[i]
+            rb = ib[i]
+            xa = wa[i]
+            xb = wb[i]
+            con = c_on[p]
+            coff = c_off[p]
+            e_on = math.exp(con)
+            e_off = math.exp(-coff)
+            runs, nr = _runs_of(i, mode, xa, xb, d1, d2, pieces, run_key, run_off, run_tab,
+                                local)
+            o = offsets[i]
+            cap = offsets[i + 1] - o
+            cnt = 0
+            lost = 0
+            free = ready[p]
+            pend = pending[p] != 0
+            pz = pending_z[p]
+            r_lvl = ref[p]
+            q = nz_off[i]
+            qe = nz_off[i + 1]
+            t = free if free > 0.0 else 0.0
+            if t >= period_us:
+                # blind for the whole cycle
+                while q < qe:
+                    q += 1
+                    lost += 1
+                ready[p] = free - period_us
+                n_lost[i] = lost
+                continue
+            r = _run_at(runs, nr, 0, t, s)
+            k = _interval(s, runs[r, 0], runs[r, 1] - 1, t)
+            v = _at(rows, ra, rb, xa, xb, s, k, t)
+            if pend:
+                r_lvl = (v if log_domain else math.log(v)) + sigma * pz
+                pend = False
+            if log_domain:
+                thi = r_lvl + con
+                tlo = r_lvl - coff
+            else:
+                thi = math.exp(r_lvl + con)
+                tlo = math.exp(r_lvl - coff)
+            while True:
+                chi = thi - _EPS if log_domain else thi * (1.0 - _EPS)
+                clo = tlo + _EPS if log_domain else tlo * (1.0 + _EPS)
+                while q < qe and nz_t[q] < t:
+                    q += 1
+                    lost += 1
+                tn = nz_t[q] if q < qe else _INF
+                b = runs[r, 1]
+                d = runs[r, 2]
+                found = False
+                up = True
+                tc = 0.0
+                kc = k
+                vc = v
+                if v >= chi:
+                    found = True
+                    tc = t
+                elif v <= clo:
+                    found = True
+                    up = False
+                    tc = t
+                elif d != 0:
+                    up = d > 0
+                    lvl = thi if up else tlo
+                    j = _first(rows, ra, rb, xa, xb, k + 1, b, chi if up else clo, up,
+                               _val(rows, ra, rb, xa, xb, k))
+                    if j <= b:
+                        found = True
+                        if j - 1 == k:
+                            t0 = t
+                            v0 = v
+                        else:
+                            t0 = s[j - 1]
+                            v0 = _val(rows, ra, rb, xa, xb, j - 1)
+                        v1 = _val(rows, ra, rb, xa, xb, j)
+                        dv = v1 - v0
+                        f = (lvl - v0) / dv if dv != 0.0 else 1.0
+                        f = min(max(f, 0.0), 1.0)
+                        tc = t0 + f * (s[j] - t0)
+                        vc = v0 + f * dv
+                        kc = j - 1
+                else:
+                    t0 = t
+                    v0 = v
+                    for j in range(k + 1, b + 1):
+                        v1 = _val(rows, ra, rb, xa, xb, j)
+                        if v1 >= chi or v1 <= clo:
+                            found = True
+                            up = v1 >= chi
+                            lvl = thi if up else tlo
+                            dv = v1 - v0
+                            f = (lvl - v0) / dv if dv != 0.0 else 1.0
+                            f = min(max(f, 0.0), 1.0)
+                            tc = t0 + f * (s[j] - t0)
+                            vc = v0 + f * dv
+                            kc = j - 1
+                            break
+                        t0 = s[j]
+                        v0 = v1
+                signal = found and tc <= tn
+                if not signal and not (tn <= s[b]):
+                    if r == nr - 1:
+                        break
+                    r += 1
+                    k = runs[r, 0]
+                    t = s[k]
+                    v = _val(rows, ra, rb, xa, xb, k)
+                    continue
+                if cnt >= cap:
+                    overflow[i] = 1
+                    break
+                zj = 0.0
+                zr = 0.0
+                if draws:
+                    zj, zr = hash_normal2(seed, p, cycle, cnt)
+                if signal:
+                    tf = tc + jit_us * zj if jit_us > 0.0 else tc
+                    if tf < free:
+                        tf = free
+                    pol = 1 if up else -1
+                else:
+                    tf = tn
+                    pol = nz_pol[q]
+                    q += 1
+                tb = np.int64(math.floor(tf + lat_us)) - t_lo
+                slot_t[o + cnt] = min(max(tb, 0), nbins - 1)
+                slot_p[o + cnt] = pol
+                cnt += 1
+                if pure:
+                    if signal:
+                        t = tc
+                        k = kc
+                        v = vc
+                        step = (con if up else -coff) + sigma * zr
+                        r_lvl += step
+                        if log_domain:
+                            thi += step
+                            tlo += step
+                        else:
+                            # the levels move by the same factor: one exp per event, none
+                            # without reset noise
+                            if sigma > 0.0:
+                                f = math.exp(step)
+                            else:
+                                f = e_on if up else e_off
+                            thi *= f
+                            tlo *= f
+                    else:
+                        t = tn
+                        r = _run_at(runs, nr, r, t, s)
+                        k = _interval(s, runs[r, 0], runs[r, 1] - 1, t)
+                        v = _at(rows, ra, rb, xa, xb, s, k, t)
+                        r_lvl = (v if log_domain else math.log(v)) + sigma * zr
+                        if log_domain:
+                            thi = r_lvl + con
+                            tlo = r_lvl - coff
+                        else:
+                            thi = math.exp(r_lvl + con)
+                            tlo = math.exp(r_lvl - coff)
+                    free = t
+                    continue
+                t_end = tf + lat_us + refr_us
+                free = t_end
+                if t_end >= period_us:
+                    pend = True
+                    pz = zr
+                    break
+                t = t_end if t_end > 0.0 else 0.0
+                r2 = _run_at(runs, nr, r, t, s)
+                if r2 == r and t >= s[k]:
+                    k = _advance(s, k, runs[r, 1] - 1, t, h_max)
+                else:
+                    r = r2
+                    k = _interval(s, runs[r, 0], runs[r, 1] - 1, t)
+                v = _at(rows, ra, rb, xa, xb, s, k, t)
+                r_lvl = (v if log_domain else math.log(v)) + sigma * zr
+                if log_domain:
+                    thi = r_lvl + con
+                    tlo = r_lvl - coff
+                else:
+                    thi = math.exp(r_lvl + con)
+                    tlo = math.exp(r_lvl - coff)
+            while q < qe:
+                if nz_t[q] < free:
+                    lost += 1
+                q += 1
+            counts[i] = cnt
+            n_lost[i] = lost
+            ref[p] = r_lvl
+            ready[p] = free - period_us
+            pending[p] = 1 if pend else 0
+            pending_z[p] = pz
+
+
+@nb.njit(cache=True, parallel=True)
+def _bounds(pix, order, s, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pieces, run_key,
+            run_off, run_tab, c_on, c_off, alive, nz_off, sigma, c_scale, out, block):
+    """Upper bound on each listed pixel's events in the cycle: over every monotone run,
+    its log variation over the smallest effective step (threshold less six sigma of
+    reset noise, times ``c_scale``) plus one; the point-by-point variation of the runs
+    scanned whole; plus the noise arrivals and two."""
+    n = pix.shape[0]
+    nruns_max = 2 * pieces.shape[0] if mode == 0 else 1
+    for bi in nb.prange(order.shape[0]):
+        local = np.empty((nruns_max, 3), dtype=np.int64)
+        b0 = order[bi] * block
+        for i in range(b0, min(n, b0 + block)):
+            p = pix[i]
+            if alive[p] == 0:
+                out[i] = 0
+                continue
+            runs, nr = _runs_of(i, mode, wa[i], wb[i], d1, d2, pieces, run_key, run_off,
+                                run_tab, local)
+            cmin = min(c_on[p], c_off[p])
+            cmin = max(cmin - 6.0 * sigma, 0.25 * cmin) * c_scale
+            total = 0.0
+            for r in range(nr):
+                a = runs[r, 0]
+                b = runs[r, 1]
+                if runs[r, 2] != 0:
+                    va = _val(rows, ia[i], ib[i], wa[i], wb[i], a)
+                    vb = _val(rows, ia[i], ib[i], wa[i], wb[i], b)
+                    dv = abs(vb - va) if log_domain else abs(math.log(vb) - math.log(va))
+                else:
+                    dv = 0.0
+                    prev = _val(rows, ia[i], ib[i], wa[i], wb[i], a)
+                    for j in range(a + 1, b + 1):
+                        cur = _val(rows, ia[i], ib[i], wa[i], wb[i], j)
+                        dv += abs(cur - prev) if log_domain else abs(math.log(cur / prev))
+                        prev = cur
+                total += dv / cmin + 1.0
+            out[i] = np.int64(total) + 2 + (nz_off[i + 1] - nz_off[i])
+
+
+def _block_order(n: int, block: int) -> np.ndarray:
+    """Blocks of pixels in an order that gives every thread a share of each image part
+    (numba's parallel loop hands each thread one contiguous range)."""
+    nblk = max(1, (n + block - 1) // block)
+    threads = max(1, nb.get_num_threads())
+    return np.argsort(np.arange(nblk) % threads, kind="stable").astype(np.int64)
+
+
+_BLOCK = 64
+
+
+def fire_cycle(
+    pix: np.ndarray,
+    s: np.ndarray,
+    rows: np.ndarray,
+    ia: np.ndarray,
+    ib: np.ndarray,
+    wa: np.ndarray,
+    wb: np.ndarray,
+    *,
+    log_domain: bool,
+    pieces: np.ndarray | None,
+    run_key: np.ndarray | None,
+    run_off: np.ndarray | None,
+    run_tab: np.ndarray | None,
+    c_on: np.ndarray,
+    c_off: np.ndarray,
+    state: PixelState,
+    alive: np.ndarray,
+    noise_off: np.ndarray,
+    noise_t: np.ndarray,
+    noise_pol: np.ndarray,
+    seed: int,
+    cycle: int,
+    reset_noise_sigma: float,
+    refractory_us: float,
+    latency_us: float,
+    jitter_sigma_us: float,
+    period_us: float,
+    t_lo: int,
+    nbins: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """One cycle of the listed pixels ``pix``; ``state`` is advanced in place.
+
+    Returns ``(counts, slot_t, slot_p, offsets, lost)``: listed pixel ``i`` fired
+    ``counts[i]`` events, in slots ``offsets[i] ..`` (time bins from ``t_lo``, polarity);
+    ``lost`` noise arrivals fell in dead time.
+    """
+    n = int(pix.size)
+    mode = 0 if pieces is not None else 1
+    d1 = np.diff(rows[0]) if mode == 0 else np.zeros(1)
+    d2 = np.diff(rows[1]) if mode == 0 else np.zeros(1)
+    pcs = pieces if pieces is not None else np.zeros((1, 2), dtype=np.int64)
+    rk = run_key if run_key is not None else np.zeros(1, dtype=np.int64)
+    ro = run_off if run_off is not None else np.zeros(2, dtype=np.int64)
+    rt = run_tab if run_tab is not None else np.zeros((1, 3), dtype=np.int64)
+    order = _block_order(n, _BLOCK)
+    bound = np.empty(n, dtype=np.int64)
+    c_scale = 1.0
+    saved = state.copy()
+    for _attempt in range(8):
+        _bounds(pix, order, s, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pcs, rk, ro,
+                rt, c_on, c_off, alive, noise_off, float(reset_noise_sigma), c_scale, bound,
+                _BLOCK)
+        offsets = np.zeros(n + 1, dtype=np.int64)
+        np.cumsum(bound, out=offsets[1:])
+        total = int(offsets[-1])
+        slot_t = np.empty(total, dtype=np.int32)
+        slot_p = np.empty(total, dtype=np.int8)
+        counts = np.empty(n, dtype=np.int64)
+        overflow = np.zeros(n, dtype=np.int8)
+        lost = np.empty(n, dtype=np.int64)
+        _fire(pix, order, s, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pcs, rk, ro, rt,
+              c_on, c_off, state.ref, state.ready, state.pending, state.pending_z, alive,
+              noise_off, noise_t, noise_pol, np.uint64(seed), np.int64(cycle),
+              float(reset_noise_sigma), float(refractory_us), float(latency_us),
+              float(jitter_sigma_us), float(period_us), offsets, slot_t, slot_p, counts,
+              overflow, lost, np.int64(t_lo), np.int64(nbins), _BLOCK)
+        if not overflow.any():
+            return counts, slot_t, slot_p, offsets, int(lost.sum())
+        state.restore(saved)
+        c_scale *= 0.5
+    raise RuntimeError("pixel model: the event bound was exceeded repeatedly")
+
+
+# ----------------------------------------------------------------------------- output
+
+
+@nb.njit(cache=True, parallel=True)
+def _gather(offsets, counts, slot_t, slot_p, pix, width, t_first, nbins, out):
+    npix = counts.shape[0]
+    nblk = 16
+    bsize = (npix + nblk - 1) // nblk
+    hist = np.zeros((nblk, nbins), dtype=np.int64)
+    for b in nb.prange(nblk):
+        for i in range(b * bsize, min(npix, (b + 1) * bsize)):
+            o = offsets[i]
+            for k in range(counts[i]):
+                hist[b, slot_t[o + k]] += 1
+    acc = np.int64(0)
+    for tb in range(nbins):
+        for b in range(nblk):
+            c = hist[b, tb]
+            hist[b, tb] = acc
+            acc += c
+    for b in nb.prange(nblk):
+        for i in range(b * bsize, min(npix, (b + 1) * bsize)):
+            o = offsets[i]
+            p = pix[i]
+            y = p // width
+            x = p - y * width
+            for k in range(counts[i]):
+                tb = slot_t[o + k]
+                d = hist[b, tb]
+                hist[b, tb] = d + 1
+                out[d].x = x
+                out[d].y = y
+                out[d].p = slot_p[o + k]
+                out[d].t = t_first + tb
+
+
+def gather_sorted(offsets: np.ndarray, counts: np.ndarray, slot_t: np.ndarray,
+                  slot_p: np.ndarray, pix: np.ndarray, *, width: int, t_first_us: int,
+                  nbins: int) -> np.ndarray:
+    """Events (``EVENT_DTYPE``) from the slots, sorted by time by a counting sort over the
+    ``nbins`` µs bins (bin ``b`` is time ``t_first_us + b``). Stable: among equal times,
+    listed-pixel order, then each pixel's own order."""
+    out = np.empty(int(counts.sum()), dtype=EVENT_DTYPE)
+    _gather(offsets, counts, slot_t, slot_p, pix, np.int64(width), np.int64(t_first_us),
+            np.int64(nbins), out)
+    return out
