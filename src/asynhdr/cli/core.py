@@ -211,8 +211,9 @@ def demo(
 # --------------------------------------------------------------------------- simulate
 
 
-def _scene_from_spec(spec: str, width: int, height: int, scale: float) -> Any:
-    from asynhdr.scene import flat_field, from_radiance_map, step_chart
+def _scene_from_spec(spec: str, width: int, height: int, scale: float | None,
+                     target: float = 316.0) -> Any:
+    from asynhdr.scene import exposure_scale, flat_field, from_radiance_map, step_chart
 
     if spec == "chart":
         return step_chart(width=width, height=height)
@@ -223,14 +224,19 @@ def _scene_from_spec(spec: str, width: int, height: int, scale: float) -> Any:
             fail(f"scene {spec!r}: expected flat:RADIANCE with a number, e.g. flat:1600")
         if not (value >= 0 and math.isfinite(value)):
             fail(f"scene {spec!r}: radiance must be finite and >= 0")
-        return flat_field(width=width, height=height, radiance=value * scale, unit="lux")
+        return flat_field(width=width, height=height, radiance=value * (scale or 1.0),
+                          unit="lux")
     from asynhdr.io.images import read_radiance
 
     radiance, info = read_radiance(spec)
     if info.get("clipped_negative"):
         err_console.print(f"{spec}: {info['clipped_negative']} negative pixels clipped to 0")
+    if scale is None:  # automatic exposure: the scene's log-average at the rig's middle
+        scale = exposure_scale(radiance, target=target)
+        err_console.print(f"{spec}: automatic exposure, x{scale:.4g} to lux (log-average at "
+                          f"{target:.4g} lux; --scale to set it)")
     return from_radiance_map(radiance, width=width, height=height, scale=scale,
-                             name=Path(spec).stem)
+                             name=Path(spec).stem, unit="lux", fit="pad")
 
 
 @app.command()
@@ -248,7 +254,9 @@ def simulate(
     t1_shape: str = typer.Option("linear", help="Scene panel ramp: linear | exponential."),
     t2_shape: str = typer.Option("linear", help="Reference panel ramp: linear | exponential."),
     l_const: float = typer.Option(10.0, help="Reference radiance, in the scene's unit."),
-    scale: float = typer.Option(1.0, help="Multiply the scene radiance by this."),
+    scale: float | None = typer.Option(None, help="Multiply the scene radiance by this "
+                                       "(default for HDR images: automatic exposure, the "
+                                       "log-average at L_const sqrt(contrast ratio 1))."),
     seed: int = typer.Option(0, help="Seed of this capture's randomness."),
     sensor_seed: int = typer.Option(1, help="Seed of the sensor's frozen mismatch "
                                     "(same seed, same sensor)."),
@@ -265,7 +273,10 @@ def simulate(
         sensor = get_preset(preset)
         rig = Rig(period_us=period_us, ramp_fraction=ramp_fraction, t1_shape=t1_shape,  # type: ignore[arg-type]
                   t2_shape=t2_shape, l_const=l_const)  # type: ignore[arg-type]
-        sc = _scene_from_spec(scene, width, height, scale)
+        if scale is not None and not (scale > 0 and math.isfinite(scale)):
+            fail(f"--scale must be a positive number, got {scale}")
+        sc = _scene_from_spec(scene, width, height, scale,
+                              target=l_const * math.sqrt(rig.contrast_ratio_1))
         with progress_bar() as update:
             rec = run(sc, rig=rig, sensor=sensor, n_cycles=n_cycles, rng=seed,
                       sensor_seed=sensor_seed, engine=engine, dt_us=dt_us,
