@@ -30,7 +30,7 @@ import numpy.typing as npt
 
 from asynhdr.calibrate import CMap
 from asynhdr.events import Recording
-from asynhdr.experiments import _cmaps_from_flats
+from asynhdr.experiments import _cmaps_from_flats, finite_image
 from asynhdr.framecam import (
     FrameCamera,
     budget_bracket,
@@ -165,7 +165,7 @@ def evaluate_scene(
                    progress=lambda d, t: tick(f"{name}: simulate", d, t))
     images: dict[str, np.ndarray] = {}
     for i, m in enumerate(methods):
-        images[m] = reconstruct(rec, method=m, k=k, cmap=cmap)[-1]
+        images[m] = finite_image(reconstruct(rec, method=m, k=k, cmap=cmap)[-1])[0]
         tick(f"{name}: reconstruct", i + 1, len(methods))
     n_events = int(rec.events.size)
     del rec

@@ -56,6 +56,7 @@ __all__ = [
     "ChartResult",
     "MethodResult",
     "event_counts",
+    "finite_image",
     "measure_chart",
     "run_chart_experiment",
     "run_frame_chart",
@@ -101,6 +102,7 @@ class MethodResult:
     rel_error: np.ndarray
     rel_error_median: float
     grey_levels: int
+    n_nonfinite: int = 0
 
     def to_dict(self) -> dict[str, Any]:
         def fl(v: float) -> float | str | None:
@@ -116,7 +118,7 @@ class MethodResult:
             "dr_steps_db": self.dr_steps.dr_db, "dr_steps_d": [self.dr_steps.d_brightest,
                                                               self.dr_steps.d_darkest],
             "median_rel_error": fl(self.rel_error_median),
-            "grey_levels": self.grey_levels,
+            "grey_levels": self.grey_levels, "n_nonfinite": self.n_nonfinite,
             "patch_mean": self.stats.mean.tolist(),
             "patch_std": self.stats.std.tolist(),
             "patch_snr_db": [fl(v) for v in self.stats.snr_db],
@@ -124,6 +126,21 @@ class MethodResult:
             "patch_responding": self.responding.tolist(),
             "patch_rel_error": [fl(v) for v in self.rel_error],
         }
+
+
+def finite_image(image: np.ndarray) -> tuple[np.ndarray, int]:
+    """The image with non-finite pixels (an overflowing ``exp`` in a reconstruction) set
+    to its largest finite value (NaN to 0), and how many there were."""
+    img = np.asarray(image)
+    bad = ~np.isfinite(img)
+    n = int(bad.sum())
+    if not n:
+        return img, 0
+    ok = img[~bad]
+    top = float(ok.max()) if ok.size else 0.0
+    out = np.where(np.isnan(img), 0.0, np.where(bad, top, img)).astype(img.dtype)
+    logger.warning("%d non-finite pixels set to the image's largest finite value", n)
+    return out, n
 
 
 def measure_chart(image: np.ndarray, scene: Scene, *, method: str, with_cmap: bool = False,
@@ -134,6 +151,7 @@ def measure_chart(image: np.ndarray, scene: Scene, *, method: str, with_cmap: bo
     ``SNR_in >= 1``), the radiometric error after one global scale, grey levels."""
     if scene.rois is None or scene.truth is None or scene.densities is None:
         raise ValueError("measure_chart: the scene has no patches (use step_chart)")
+    image, n_bad = finite_image(image)
     rois = central_rois(scene.rois, shape=region_shape)
     st = patch_stats(image, rois)
     dr = dynamic_range(st, scene.truth, has_events=has_events)
@@ -150,7 +168,7 @@ def measure_chart(image: np.ndarray, scene: Scene, *, method: str, with_cmap: bo
         method=method, with_cmap=with_cmap, image=image, stats=st,
         snr=mean_snr_db(st, responding=responding), snr_in=snr_in, responding=responding,
         dr=dr, dr_steps=steps, rel_error=err, rel_error_median=med,
-        grey_levels=distinct_grey_levels(image))
+        grey_levels=distinct_grey_levels(image), n_nonfinite=n_bad)
 
 
 def event_counts(rec: Recording, cycle: int = -1) -> np.ndarray:
