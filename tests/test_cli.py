@@ -44,7 +44,7 @@ def test_simulate_calibrate_reconstruct(tmp_path: Path) -> None:
 
 
 def test_demo_small(tmp_path: Path) -> None:
-    r = run("demo", "--out", tmp_path, "--width", "74", "--height", "34", "--n-cycles", "2",
+    r = run("demo", "--out", tmp_path, "--width", "282", "--height", "128", "--n-cycles", "2",
             "--n-flat", "2")
     assert r.exit_code == 0, r.output
     assert "paper" in r.output and "Dynamic range" in r.output

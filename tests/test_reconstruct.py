@@ -9,7 +9,6 @@ import pytest
 
 from asynhdr.calibrate import estimate_cmap
 from asynhdr.events import Recording, make_events, make_triggers, validate_events
-from asynhdr.metrics import PatchStats, dynamic_range, mean_snr_db, patch_stats
 from asynhdr.reconstruct import (
     METHODS,
     CycleWindows,
@@ -137,34 +136,6 @@ def test_windows_from_triggers_and_from_metadata() -> None:
     assert win.window_us == pytest.approx(8_000)
     no_trig = Recording(events=rec.events, width=2, height=2, metadata=rec.metadata)
     assert windows_for(no_trig).start_us.tolist() == [500, 10_500, 20_500]
-
-
-def test_snr_and_dynamic_range_by_hand() -> None:
-    img = np.zeros((4, 8))
-    img[:, :4] = [[10, 10, 12, 12]] * 4  # mean 11, std 1 -> 20 log10(11)
-    img[:, 4:] = 5.0
-    st = patch_stats(img, {0: (0, 4, 0, 4), 1: (0, 4, 4, 8)})
-    assert st.mean.tolist() == [11.0, 5.0]
-    assert st.snr_db[0] == pytest.approx(20 * math.log10(11.0))
-    assert math.isinf(st.snr_db[1])
-    assert mean_snr_db(st) == pytest.approx(20 * math.log10(11))
-    assert math.isinf(mean_snr_db(PatchStats(mean=np.array([3.0]), std=np.array([0.0]))))
-    # densities 0..4, 100 pixels each: standard error of a difference sqrt(2) sd / 10
-    st = PatchStats(mean=np.array([100.0, 10.0, 9.5, 1.0, 0.9]),
-                    std=np.array([1.0, 1.0, 1.0, 0.1, 1.5]),
-                    count=np.full(5, 100.0))
-    dr = dynamic_range(st, np.array([0.0, 1.0, 2.0, 3.0, 4.0]))
-    # 10 -> 9.5 is 0.5 > 3 * 0.141: resolved; the last patch has mu < sigma: not
-    assert dr.dr_db == pytest.approx(60.0)
-    assert (dr.d_brightest, dr.d_darkest) == (0.0, 3.0)
-    assert dr.resolved.tolist() == [True, True, True, True, False]
-    # one pixel per patch: the same step of 0.5 is now within noise and cuts the run
-    dr1 = dynamic_range(PatchStats(mean=st.mean, std=st.std), np.arange(5.0))
-    assert dr1.dr_db == pytest.approx(20.0)
-    # a response that turns back ends the run
-    back = PatchStats(mean=np.array([5.0, 4.0, 4.5, 1.0]), std=np.full(4, 0.01),
-                      count=np.full(4, 100.0))
-    assert dynamic_range(back, np.arange(4.0)).dr_db == pytest.approx(20.0)
 
 
 @pytest.mark.parametrize(

@@ -130,7 +130,8 @@ def _smooth_map(h: int, w: int) -> np.ndarray:
 @pytest.mark.parametrize(("width", "height"), [(346, 260), (173, 97), (1280, 720)])
 def test_from_radiance_map_preserves_mean(width: int, height: int) -> None:
     src = _smooth_map(480, 640)
-    s = from_radiance_map(src, width=width, height=height, scale=3.0, unit="lux", name="blob")
+    s = from_radiance_map(src, width=width, height=height, scale=3.0, unit="lux", name="blob",
+                          fit="stretch")
     assert s.radiance.shape == (height, width) and s.radiance.dtype == np.float32
     assert s.unit == "lux" and s.name == "blob"
     mean_in = 3.0 * float(src.astype(np.float64).mean())
@@ -141,7 +142,7 @@ def test_from_radiance_map_preserves_mean(width: int, height: int) -> None:
 def test_from_radiance_map_same_size_and_crop() -> None:
     src = _smooth_map(40, 60)
     s = from_radiance_map(src, width=60, height=40)
-    assert np.array_equal(s.radiance, src)
+    assert np.array_equal(s.radiance, src) and s.rois == {0: (0, 40, 0, 60)}
     # crop to the sensor's aspect: 60x40 -> centre 40x40 -> 20x20
     c = from_radiance_map(src, width=20, height=20, fit="crop")
     assert c.radiance.shape == (20, 20)

@@ -1,46 +1,89 @@
-"""Image quality on a chart: patch statistics, SNR, dynamic range, radiometric error.
+"""Image quality that cannot flatter: chart metrics (SNR, dynamic range, radiometric
+error) and full-image metrics against a ground-truth radiance map.
 
-SNR of a patch (Wu et al. 2024, section 3.2): ``10 log10(mu^2 / sigma^2)`` over the
-pixels of its region of interest, on the reconstructed image.
+Chart metrics work on per-patch statistics taken over a central region of a FIXED pixel
+count in every patch (:data:`SNR_REGION_SHAPE`, 16 x 16 = 256 pixels): the SNR of an
+image with heavy-tailed noise depends on how many pixels it is taken over, so a fixed
+count makes figures comparable across sensor sizes.
 
-Dynamic range by the paper's criterion: ``DR = 20 (D_darkest - D_brightest)`` dB over
-the resolved patches ("sensitivity to brightness variations across filter levels").
-Here, taking the patches in order of density, a step between neighbours is *resolved*
-when the brighter patch reconstructs brighter by more than three standard errors of
-the difference of the two patch means, ``mu_i - mu_j > 3 sqrt(sigma_i^2/n_i +
-sigma_j^2/n_j)`` (``n``: pixels in each region), and a patch counts only while its
-signal is at least its noise, ``mu >= sigma`` (SNR >= 0 dB, the lower limit of the
-dynamic range in EMVA 1288). The resolved levels are the longest run of consecutive
-densities whose every patch and every adjacent step pass; ``D_brightest`` and
-``D_darkest`` are its ends. A saturated end (neighbours reading the same) or a
-response that turns back ends the run.
+- Patch SNR, the paper's (Wu et al. 2024, section 3.2): ``SNR = 10 log10(mu^2 / sigma^2)``
+  dB over the region's pixels.
+- Input-referred noise, as EMVA 1288 (release 4.0: noise and dynamic range referred to
+  the input through the responsivity) does for a camera: with ``img = R(L)``
+  the fitted monotone response,
+  ``sigma_L = sigma_img / |dR/dL|`` and ``SNR_in = mu_L / sigma_L = L |dR/dL| / sigma_img
+  = |dR / d ln L| / sigma_img``. It does not depend on the output's scale or curve: a
+  compressive (log-like) image has a small slope where it is flat, and its noise counts
+  for more there.
+- Dynamic range (EMVA 1288 definition, ``DR = 20 log10(L_max / L_min)`` dB, over the
+  range where ``SNR_in >= 1``): over the longest run of patches, in order of radiance,
+  where every patch has events, ``SNR_in >= 1`` and each step to the next patch raises
+  the measured mean strictly. A flat response has ``dR/dL = 0`` and no range.
+- The paper's step criterion beside it: neighbouring patches (by density) are told
+  apart when their means differ by more than the sum of their pixel spreads,
+  ``|mu_i - mu_j| > sigma_i + sigma_j``; ``DR = 20 (D_darkest - D_brightest)``.
+
+Full-image metrics (:func:`compare_images`): each test image is first given one global
+scale (:func:`fit_scale`), then log-radiance RMSE, median relative error, PU21-PSNR
+(Mantiuk and Azimi 2021) and SSIM on a tone-mapped pair (scikit-image).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 __all__ = [
+    "PU21_PARAMS",
+    "SNR_REGION_SHAPE",
     "DynamicRange",
+    "ImageComparison",
     "PatchStats",
+    "ResponseFit",
+    "SnrSummary",
+    "central_rois",
+    "compare_images",
+    "distinct_grey_levels",
     "dynamic_range",
+    "dynamic_range_steps",
+    "fit_response",
+    "fit_scale",
+    "input_referred_snr",
+    "log_rmse",
     "mean_snr_db",
+    "patch_event_fraction",
     "patch_stats",
-    "relative_rmse",
+    "pu21_decode",
+    "pu21_encode",
+    "pu21_psnr",
+    "radiometric_error",
+    "relative_error",
+    "ssim_tonemapped",
 ]
 
 Roi = tuple[int, int, int, int]
 
+SNR_REGION_SHAPE: tuple[int, int] = (16, 16)
+"""(height, width) of the central region over which every patch is measured: 256 pixels,
+which fits inside the patches of the paper's 36-level chart on sensors from 346 x 260
+(DAVIS346) up."""
+
+MIN_EVENT_FRACTION = 0.5
+"""A patch 'has events' when at least this fraction of its region's pixels fired at least
+one event in the measured cycle."""
+
+
+# --------------------------------------------------------------------------- patches
+
 
 @dataclass(frozen=True)
 class PatchStats:
-    """Per-patch mean, standard deviation and pixel count of an image; SNR in dB.
-
-    ``count`` is the number of pixels of each region (1 when not given).
-    """
+    """Per-patch mean, standard deviation (population, ``ddof=0``) and pixel count."""
 
     mean: np.ndarray
     std: np.ndarray
@@ -54,14 +97,36 @@ class PatchStats:
 
     @property
     def snr_db(self) -> np.ndarray:
-        """``10 log10(mu^2 / sigma^2)``; ``inf`` where ``sigma == 0 < |mu|``, NaN where both
-        are 0 (an empty patch)."""
+        """The paper's ``10 log10(mu^2 / sigma^2)`` dB per patch; ``inf`` where
+        ``sigma == 0 < |mu|``, NaN where both are 0."""
         with np.errstate(divide="ignore", invalid="ignore"):
             return 10.0 * np.log10(self.mean**2 / self.std**2)
 
 
-def patch_stats(image: np.ndarray, rois: Mapping[int, Roi]) -> PatchStats:
-    """Mean and standard deviation of ``image`` over each ROI (``(y0, y1, x0, x1)``)."""
+def central_rois(rois: Mapping[int, Roi], *,
+                 shape: tuple[int, int] = SNR_REGION_SHAPE) -> dict[int, Roi]:
+    """The central ``shape`` (height, width) region of each ROI ``(y0, y1, x0, x1)``.
+
+    Raises ``ValueError`` naming the first ROI smaller than ``shape``: a smaller region
+    would change the statistics this module promises to keep fixed.
+    """
+    h, w = shape
+    out: dict[int, Roi] = {}
+    for k, (y0, y1, x0, x1) in rois.items():
+        if y1 - y0 < h or x1 - x0 < w:
+            raise ValueError(
+                f"central_rois: patch {k} region is {x1 - x0}x{y1 - y0} (width x height), "
+                f"smaller than the fixed {w}x{h} measuring region; use a larger sensor or "
+                "a smaller region")
+        cy = y0 + (y1 - y0 - h) // 2
+        cx = x0 + (x1 - x0 - w) // 2
+        out[int(k)] = (cy, cy + h, cx, cx + w)
+    return out
+
+
+def patch_stats(image: npt.ArrayLike, rois: Mapping[int, Roi]) -> PatchStats:
+    """Mean and standard deviation of ``image`` over each ROI ``(y0, y1, x0, x1)``,
+    patches indexed ``0..n-1``."""
     img = np.asarray(image, dtype=np.float64)
     if img.ndim != 2:
         raise ValueError(f"patch_stats: expected a 2-D image, got shape {img.shape}")
@@ -78,87 +143,466 @@ def patch_stats(image: np.ndarray, rois: Mapping[int, Roi]) -> PatchStats:
     return PatchStats(mean, std, count)
 
 
-def mean_snr_db(stats: PatchStats) -> float:
-    """Mean patch SNR in dB over the patches that have noise.
+def patch_event_fraction(event_count: npt.ArrayLike, rois: Mapping[int, Roi]) -> np.ndarray:
+    """Fraction of each ROI's pixels with at least one event (``event_count``: events per
+    pixel, ``(height, width)``)."""
+    cnt = np.asarray(event_count)
+    out = np.empty(len(rois))
+    for i in range(len(rois)):
+        y0, y1, x0, x1 = rois[i]
+        out[i] = float(np.mean(cnt[y0:y1, x0:x1] > 0))
+    return out
 
-    Patches with zero noise (``sigma == 0``: infinite SNR, as every pixel of a patch of
-    a noise-free, mismatch-free sensor reads the same) and empty patches (NaN) are left
-    out; ``inf`` when no patch has noise.
+
+# --------------------------------------------------------------------------- response
+
+
+@dataclass(frozen=True)
+class ResponseFit:
+    """A monotone response fitted to patch means, in the patches' own order.
+
+    Attributes
+    ----------
+    fitted : the fitted response at each patch (same unit as the image).
+    slope_ln : ``|dR / d ln L|`` at each patch (image unit per neperian unit of radiance).
+    increasing : whether the response rises with radiance.
     """
-    snr = stats.snr_db
-    finite = snr[np.isfinite(snr)]
-    if finite.size:
-        return float(np.mean(finite))
-    return float("inf") if np.any(np.isposinf(snr)) else float("nan")
+
+    fitted: np.ndarray
+    slope_ln: np.ndarray
+    increasing: bool
+
+
+def fit_response(radiance: npt.ArrayLike, mean: npt.ArrayLike) -> ResponseFit:
+    """Fit a monotone response ``R(L)`` to patch means and take its slope.
+
+    ``R`` is the isotonic (least-squares monotone) regression of the means on
+    ``x = ln L`` (direction: the sign of the rank correlation). Its slope at a patch is
+    the SMALLER of the two secant slopes of the fit to its neighbours in ``x``
+    (one-sided at the ends):
+
+        ``s_i = min( (R_{i+1} - R_i) / (x_{i+1} - x_i), (R_i - R_{i-1}) / (x_i - x_{i-1}) )``
+
+    so a patch at the knee of a flat stretch gets slope 0 from its flat side.
+    Patches of equal radiance are pooled by the fit.
+    """
+    from scipy.optimize import isotonic_regression
+    from scipy.stats import spearmanr
+
+    lum = np.asarray(radiance, dtype=np.float64)
+    mu = np.asarray(mean, dtype=np.float64)
+    if lum.shape != mu.shape or lum.ndim != 1:
+        raise ValueError(f"fit_response: radiance {lum.shape} and mean {mu.shape} must be "
+                         "1-D of the same length")
+    if np.any(~(lum > 0)):
+        raise ValueError("fit_response: radiance must be > 0 (log axis)")
+    n = lum.size
+    if n < 2:
+        return ResponseFit(mu.copy(), np.zeros(n), True)
+    order = np.argsort(lum, kind="stable")
+    x = np.log(lum[order])
+    y = mu[order]
+    finite = np.isfinite(y)
+    inc = True
+    if finite.sum() >= 2 and np.ptp(y[finite]) > 0:
+        rho = spearmanr(x[finite], y[finite]).statistic
+        inc = not (np.isfinite(rho) and rho < 0)
+    yy = np.where(finite, y, np.nanmin(y) if finite.any() else 0.0)
+    fit = isotonic_regression(yy, increasing=inc).x
+    dx = np.diff(x)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        sec = np.where(dx > 0, np.abs(np.diff(fit)) / dx, 0.0)
+    slope = np.empty(n)
+    slope[0] = sec[0]
+    slope[-1] = sec[-1]
+    if n > 2:
+        slope[1:-1] = np.minimum(sec[:-1], sec[1:])
+    out_fit = np.empty(n)
+    out_slope = np.empty(n)
+    out_fit[order] = fit
+    out_slope[order] = slope
+    return ResponseFit(out_fit, out_slope, inc)
+
+
+def input_referred_snr(stats: PatchStats, radiance: npt.ArrayLike,
+                       fit: ResponseFit | None = None) -> np.ndarray:
+    """EMVA 1288 input-referred SNR per patch (a ratio, not dB).
+
+    ``sigma_L = sigma_img / |dR/dL|``, ``SNR_in = L / sigma_L = |dR / d ln L| / sigma_img``
+    with ``R`` from :func:`fit_response`. ``inf`` where the response rises and the image
+    has no noise (``sigma_img = 0``); 0 where the response is flat.
+    """
+    fit = fit or fit_response(radiance, stats.mean)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        snr = np.where(fit.slope_ln > 0, fit.slope_ln / stats.std, 0.0)
+    return snr
+
+
+# --------------------------------------------------------------------------- dynamic range
 
 
 @dataclass(frozen=True)
 class DynamicRange:
-    """Dynamic range by the paper's criterion, and the resolved run of patches."""
+    """A dynamic range and the run of patches it spans.
+
+    ``counted`` marks the run's patches; ``l_min``/``l_max`` are the radiances at its
+    ends (0 and 0 when no run); ``criterion`` names the rule.
+    """
 
     dr_db: float
-    brightest_index: int
-    darkest_index: int
-    d_brightest: float
-    d_darkest: float
-    resolved: np.ndarray  # bool per patch
+    l_min: float
+    l_max: float
+    counted: np.ndarray
+    criterion: str
+    n_patches: int = 0
+    d_brightest: float | None = None
+    d_darkest: float | None = None
+    snr_in: np.ndarray | None = field(default=None, repr=False)
 
 
-def dynamic_range(stats: PatchStats, densities: np.ndarray, *,
-                  z: float = 3.0) -> DynamicRange:
-    """``20 (D_darkest - D_brightest)`` dB over the longest run of resolved patches
-    (see the module's text; ``z`` standard errors make a step)."""
+def _longest_run(ok_patch: np.ndarray, ok_step: np.ndarray) -> tuple[int, int]:
+    """Longest ``[lo, hi]`` (inclusive, in sorted positions) with every patch ok and every
+    step between neighbours ok; ``(0, -1)`` when no patch is ok."""
+    best = (0, -1)
+    i = 0
+    n = ok_patch.size
+    while i < n:
+        if not ok_patch[i]:
+            i += 1
+            continue
+        j = i
+        while j + 1 < n and ok_step[j] and ok_patch[j + 1]:
+            j += 1
+        if j - i > best[1] - best[0]:
+            best = (i, j)
+        i = j + 1
+    return best
+
+
+def dynamic_range(stats: PatchStats, radiance: npt.ArrayLike, *,
+                  has_events: npt.ArrayLike | None = None,
+                  min_snr: float = 1.0) -> DynamicRange:
+    """EMVA 1288 dynamic range over chart patches: ``20 log10(L_max / L_min)`` dB.
+
+    Patches sorted by radiance ``L``; a patch counts when it has events (``has_events``,
+    default all), its input-referred SNR (:func:`input_referred_snr`) is at least
+    ``min_snr`` (1, i.e. 0 dB: EMVA 1288's lower limit), and its mean is finite; a step
+    between neighbours counts when the measured mean moves strictly in the response's
+    direction. The range is the longest run of counted patches joined by counted steps;
+    a single patch, or none, is 0 dB.
+    """
+    lum = np.asarray(radiance, dtype=np.float64)
+    n = lum.size
+    if stats.mean.size != n:
+        raise ValueError(f"dynamic_range: {n} radiances for {stats.mean.size} patches")
+    ev = np.ones(n, bool) if has_events is None else np.asarray(has_events, bool)
+    fit = fit_response(lum, stats.mean)
+    snr_in = input_referred_snr(stats, lum, fit)
+    order = np.argsort(lum, kind="stable")
+    mu = stats.mean[order]
+    sign = 1.0 if fit.increasing else -1.0
+    ok_patch = ev[order] & (snr_in[order] >= min_snr) & np.isfinite(mu)
+    ok_step = sign * np.diff(mu) > 0
+    lo, hi = _longest_run(ok_patch, ok_step)
+    counted = np.zeros(n, bool)
+    if hi < lo:
+        return DynamicRange(0.0, 0.0, 0.0, counted, "EMVA 1288 (SNR_in >= 1, monotone)",
+                            0, snr_in=snr_in)
+    counted[order[lo:hi + 1]] = True
+    l_min, l_max = float(lum[order[lo]]), float(lum[order[hi]])
+    return DynamicRange(20.0 * math.log10(l_max / l_min), l_min, l_max, counted,
+                        "EMVA 1288 (SNR_in >= 1, monotone)", hi - lo + 1, snr_in=snr_in)
+
+
+def dynamic_range_steps(stats: PatchStats, densities: npt.ArrayLike, *,
+                        has_events: npt.ArrayLike | None = None,
+                        illuminance: float = 1.0) -> DynamicRange:
+    """The paper's step criterion (Wu et al. 2024, section 3.2, Fig. 5b):
+    ``DR = 20 (D_darkest - D_brightest)`` dB over the longest run of neighbouring
+    densities told apart, ``mu_bright - mu_dark > sigma_bright + sigma_dark`` (means
+    apart by more than the two pixel spreads), every patch with events.
+    ``illuminance`` only sets ``l_min``/``l_max`` (``illuminance 10^-D``)."""
     d = np.asarray(densities, dtype=np.float64)
-    if d.size != stats.mean.size:
-        raise ValueError(f"dynamic_range: {d.size} densities for {stats.mean.size} patches")
+    n = d.size
+    if stats.mean.size != n:
+        raise ValueError(f"dynamic_range_steps: {n} densities for {stats.mean.size} patches")
+    ev = np.ones(n, bool) if has_events is None else np.asarray(has_events, bool)
     order = np.argsort(d, kind="stable")
     mu = stats.mean[order]
     sd = stats.std[order]
-    n = stats.n[order]
-    se = np.sqrt(sd[:-1] ** 2 / n[:-1] + sd[1:] ** 2 / n[1:])
-    signal = mu >= sd
-    ok = ((mu[:-1] - mu[1:]) > z * se) & signal[:-1] & signal[1:]
-    best = (0, 0)  # [start, end] in sorted positions
-    i = 0
-    while i < ok.size:
-        if ok[i]:
-            j = i
-            while j < ok.size and ok[j]:
-                j += 1
-            if j - i > best[1] - best[0]:
-                best = (i, j)
-            i = j
-        else:
-            i += 1
-    resolved = np.zeros(d.size, dtype=bool)
-    lo, hi = best
-    if hi > lo:
-        resolved[order[lo:hi + 1]] = True
-    bi, di = int(order[lo]), int(order[hi])
-    return DynamicRange(
-        dr_db=float(20.0 * (d[di] - d[bi])) if hi > lo else 0.0,
-        brightest_index=bi,
-        darkest_index=di,
-        d_brightest=float(d[bi]),
-        d_darkest=float(d[di]),
-        resolved=resolved,
-    )
+    ok_patch = ev[order] & np.isfinite(mu)
+    ok_step = (mu[:-1] - mu[1:]) > (sd[:-1] + sd[1:])
+    lo, hi = _longest_run(ok_patch, ok_step)
+    counted = np.zeros(n, bool)
+    if hi <= lo:
+        return DynamicRange(0.0, 0.0, 0.0, counted, "paper (means apart > both spreads)", 0)
+    counted[order[lo:hi + 1]] = True
+    db, dd = float(d[order[lo]]), float(d[order[hi]])
+    return DynamicRange(20.0 * (dd - db), illuminance * 10.0 ** (-dd),
+                        illuminance * 10.0 ** (-db), counted,
+                        "paper (means apart > both spreads)", hi - lo + 1,
+                        d_brightest=db, d_darkest=dd)
 
 
-def relative_rmse(stats: PatchStats, truth: np.ndarray, *, fit_scale: bool = True) -> np.ndarray:
-    """Per-patch relative RMS error against true radiance.
+# --------------------------------------------------------------------------- SNR table
 
-    With ``fit_scale`` the image is first scaled by the single factor that best matches
-    the truth in the log domain (median of ``log(truth / mean)``): the error of a
-    linear-but-uncalibrated image is then its shape error, not its unit.
+
+@dataclass(frozen=True)
+class SnrSummary:
+    """Mean patch SNR (dB) over the patches that respond and have noise (``n_patches``),
+    the responding patches without noise (``n_noiseless``), and all patches."""
+
+    mean_db: float
+    n_patches: int
+    n_total: int
+    n_noiseless: int
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"mean_db": self.mean_db if math.isfinite(self.mean_db) else
+                (None if math.isnan(self.mean_db) else "inf"),
+                "n_patches": self.n_patches, "n_total": self.n_total,
+                "n_noiseless": self.n_noiseless}
+
+
+def mean_snr_db(stats: PatchStats, *, responding: npt.ArrayLike | None = None) -> SnrSummary:
+    """The paper's mean patch SNR, ``mean_i 10 log10(mu_i^2 / sigma_i^2)`` dB, over the
+    patches that respond (``responding``, default all) and have noise.
+
+    Averaged in dB as the paper's table is. Responding patches without noise
+    (``sigma = 0``: every pixel reads the same, as on a noise-free sensor or a quantised
+    image) have infinite SNR; they are counted apart (``n_noiseless``) and left out of the
+    mean, which is ``inf`` only when every responding patch is noiseless, NaN when none
+    responds.
+    """
+    snr = stats.snr_db
+    mask = np.ones(snr.size, bool) if responding is None else np.asarray(responding, bool)
+    sel = snr[mask & ~np.isnan(snr)]
+    n_inf = int(np.sum(np.isposinf(sel)))
+    finite = sel[np.isfinite(sel)]
+    if finite.size:
+        value = float(np.mean(finite))
+    elif n_inf:
+        value = float("inf")
+    else:
+        value = float("nan")
+    return SnrSummary(value, int(finite.size), int(snr.size), n_inf)
+
+
+def radiometric_error(stats: PatchStats, truth: npt.ArrayLike, *,
+                      mask: npt.ArrayLike | None = None) -> tuple[np.ndarray, float]:
+    """Per-patch relative RMS error against the true radiance after ONE global scale.
+
+    ``s = exp(median_i ln(L_i / mu_i))`` over the patches in ``mask`` with ``mu > 0``;
+    ``e_i = sqrt((s mu_i - L_i)^2 + (s sigma_i)^2) / L_i`` (bias and spread). Returns the
+    errors and ``s``. A non-linear image (the paper's ``img``) keeps its curve's error.
     """
     t = np.asarray(truth, dtype=np.float64)
     mu = stats.mean.astype(np.float64)
-    scale = 1.0
-    if fit_scale:
-        ok = (mu > 0) & (t > 0)
-        if ok.any():
-            scale = float(np.exp(np.median(np.log(t[ok] / mu[ok]))))
-    m = mu * scale
-    s = stats.std * scale
-    return np.sqrt((m - t) ** 2 + s**2) / t
+    ok = (mu > 0) & (t > 0)
+    if mask is not None:
+        ok &= np.asarray(mask, bool)
+    scale = float(np.exp(np.median(np.log(t[ok] / mu[ok])))) if ok.any() else 1.0
+    err = np.sqrt((mu * scale - t) ** 2 + (stats.std * scale) ** 2) / t
+    return err, scale
+
+
+def distinct_grey_levels(image: npt.ArrayLike, *, mask: npt.ArrayLike | None = None) -> int:
+    """Occupied levels of the 8-bit log tone map (:func:`asynhdr.tonemap.tonemap`,
+    ``method="log"``, 0.5-99.5 percentiles) of ``image``: the paper's histogram argument
+    (section 3.3: more grey levels, better image) as one number."""
+    from asynhdr.tonemap import tonemap
+
+    tm = tonemap(np.asarray(image, dtype=np.float64), method="log")
+    if mask is not None:
+        tm = tm[np.asarray(mask, bool)]
+    return int(np.unique(tm).size)
+
+
+# --------------------------------------------------------------------------- PU21
+
+PU21_PARAMS: dict[str, tuple[float, ...]] = {
+    "banding": (1.070275272, 0.4088273932, 0.153224308, 0.2520326168, 1.063512885,
+                1.14115047, 521.4527484),
+    "banding_glare": (0.353487901, 0.3734658629, 8.277049286e-05, 0.9062562627,
+                      0.09150303166, 0.9099517204, 596.3148142),
+    "peaks": (1.043882782, 0.6459495343, 0.3194584211, 0.374025247, 1.114783422,
+              1.095360363, 384.9217577),
+    "peaks_glare": (816.885024, 1479.463946, 0.001253215609, 0.9329636822, 0.06746643971,
+                    1.573435413, 419.6006374),
+}
+"""PU21 parameters ``p1..p7`` by variant (Mantiuk and Azimi, "PU21: A novel perceptually
+uniform encoding for adapting existing quality metrics for HDR", Picture Coding Symposium
+2021, as published with the paper's reference code; ``banding_glare`` is the
+recommended default)."""
+
+PU21_L_MIN = 0.005
+"""Lowest luminance (cd/m^2) PU21 encodes; below is clamped."""
+PU21_L_MAX = 10000.0
+"""Highest luminance (cd/m^2) PU21 encodes; above is clamped."""
+PU21_PEAK = 256.0
+"""Peak value of PU21-PSNR: PU21 is scaled so that 0-100 cd/m^2 spans about 0-256, like
+8-bit sRGB (the authors' metric code uses 256)."""
+PU21_DISPLAY_PEAK_CDM2 = 4000.0
+"""Display peak (cd/m^2) the reference's maximum is mapped to before PU21 (the authors'
+HDR example maps the image peak to a 4,000 cd/m^2 display)."""
+
+
+def pu21_encode(luminance: npt.ArrayLike, *, variant: str = "banding_glare") -> np.ndarray:
+    """PU21 encoding of absolute luminance ``Y`` (cd/m^2) (Mantiuk and Azimi 2021, the
+    encoding function fitted in the paper):
+
+        ``V = p7 * ( ((p1 + p2 Y^p4) / (1 + p3 Y^p4))^p5 - p6 )``
+
+    with ``Y`` clamped to [0.005, 10000] cd/m^2.
+    """
+    try:
+        p1, p2, p3, p4, p5, p6, p7 = PU21_PARAMS[variant]
+    except KeyError:
+        raise ValueError(f"pu21_encode: unknown variant {variant!r}; expected one of "
+                         f"{sorted(PU21_PARAMS)}") from None
+    y = np.clip(np.asarray(luminance, dtype=np.float64), PU21_L_MIN, PU21_L_MAX)
+    yp = y**p4
+    return p7 * (((p1 + p2 * yp) / (1.0 + p3 * yp)) ** p5 - p6)
+
+
+def pu21_decode(v: npt.ArrayLike, *, variant: str = "banding_glare") -> np.ndarray:
+    """Inverse of :func:`pu21_encode` (within the clamped range)."""
+    p1, p2, p3, p4, p5, p6, p7 = PU21_PARAMS[variant]
+    vp = np.maximum(np.asarray(v, dtype=np.float64) / p7 + p6, 0.0) ** (1.0 / p5)
+    return (np.maximum(vp - p1, 0.0) / (p2 - p3 * vp)) ** (1.0 / p4)
+
+
+def pu21_psnr(test: npt.ArrayLike, reference: npt.ArrayLike, *,
+              mask: npt.ArrayLike | None = None, variant: str = "banding_glare") -> float:
+    """PSNR on PU21-encoded absolute luminance (cd/m^2):
+    ``10 log10(256^2 / mean((V_test - V_ref)^2))`` dB; ``inf`` for identical images."""
+    a = pu21_encode(test, variant=variant)
+    b = pu21_encode(reference, variant=variant)
+    d = (a - b) ** 2
+    if mask is not None:
+        d = d[np.asarray(mask, bool)]
+    mse = float(np.mean(d))
+    return float("inf") if mse == 0 else 10.0 * math.log10(PU21_PEAK**2 / mse)
+
+
+# --------------------------------------------------------------------------- images
+
+
+def _valid(truth: np.ndarray, mask: npt.ArrayLike | None) -> np.ndarray:
+    ok = truth > 0
+    if mask is not None:
+        ok &= np.asarray(mask, bool)
+    return ok
+
+
+def fit_scale(image: npt.ArrayLike, truth: npt.ArrayLike, *,
+              mask: npt.ArrayLike | None = None) -> float:
+    """One global scale ``s = exp(median ln(truth / image))`` over valid pixels (both > 0,
+    inside ``mask``): the unit of an uncalibrated image, and nothing more."""
+    img = np.asarray(image, dtype=np.float64)
+    t = np.asarray(truth, dtype=np.float64)
+    ok = _valid(t, mask) & (img > 0)
+    if not ok.any():
+        return 1.0
+    return float(np.exp(np.median(np.log(t[ok] / img[ok]))))
+
+
+def _floored(img: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    pos = img[ok & (img > 0)]
+    floor = float(pos.min()) if pos.size else 1e-12
+    return np.maximum(img, floor)
+
+
+def log_rmse(image: npt.ArrayLike, truth: npt.ArrayLike, *,
+             mask: npt.ArrayLike | None = None) -> float:
+    """RMS of ``log2(image / truth)`` over valid pixels, in stops. Pixels the image leaves
+    at 0 or below read as its smallest positive value (black on a display), so a hole
+    costs its full error instead of being skipped."""
+    img = np.asarray(image, dtype=np.float64)
+    t = np.asarray(truth, dtype=np.float64)
+    ok = _valid(t, mask)
+    e = np.log2(_floored(img, ok)[ok] / t[ok])
+    return float(np.sqrt(np.mean(e**2)))
+
+
+def relative_error(image: npt.ArrayLike, truth: npt.ArrayLike, *,
+                   mask: npt.ArrayLike | None = None) -> float:
+    """Median over valid pixels of ``|image - truth| / truth``."""
+    img = np.asarray(image, dtype=np.float64)
+    t = np.asarray(truth, dtype=np.float64)
+    ok = _valid(t, mask)
+    return float(np.median(np.abs(img[ok] - t[ok]) / t[ok]))
+
+
+def ssim_tonemapped(image: npt.ArrayLike, truth: npt.ArrayLike, *,
+                    mask: npt.ArrayLike | None = None) -> float:
+    """SSIM (Wang et al. 2004, scikit-image's ``structural_similarity``, 7x7 window,
+    ``data_range=1``) between the two images after the SAME log tone map, set by the
+    truth: ``v = (ln x - ln lo) / (ln hi - ln lo)`` clipped to [0, 1], ``lo``, ``hi`` the
+    0.5 and 99.5 percentiles of the truth's positive pixels. With ``mask``, the mean of
+    the SSIM map over the mask's pixels (borders of half a window left out, as
+    scikit-image does for its mean)."""
+    from skimage.metrics import structural_similarity
+
+    img = np.asarray(image, dtype=np.float64)
+    t = np.asarray(truth, dtype=np.float64)
+    ok = _valid(t, mask)
+    lo, hi = (float(v) for v in np.percentile(t[ok], [0.5, 99.5]))
+    if not hi > lo:
+        hi = lo * 1.0001 + 1e-12
+
+    def tm(x: np.ndarray) -> np.ndarray:
+        x = np.clip(x, lo, hi)
+        return (np.log(x) - math.log(lo)) / (math.log(hi) - math.log(lo))
+
+    mssim, smap = structural_similarity(tm(img), tm(t), data_range=1.0, full=True)
+    if mask is None:
+        return float(mssim)
+    pad = 3  # scikit-image leaves out the window's half-width at the borders
+    inner = ok[pad:-pad, pad:-pad]
+    return float(np.mean(smap[pad:-pad, pad:-pad][inner]))
+
+
+@dataclass(frozen=True)
+class ImageComparison:
+    """An image against the true radiance (after one global scale)."""
+
+    scale: float
+    log_rmse_stops: float
+    rel_error: float
+    pu21_psnr_db: float
+    ssim: float
+    zero_fraction: float
+
+    def to_dict(self) -> dict[str, float | None]:
+        return {k: (None if not math.isfinite(v) else float(v))
+                for k, v in self.__dict__.items()}
+
+
+def compare_images(image: npt.ArrayLike, truth: npt.ArrayLike, *,
+                   mask: npt.ArrayLike | None = None,
+                   display_peak_cdm2: float = PU21_DISPLAY_PEAK_CDM2) -> ImageComparison:
+    """Every full-image metric of ``image`` against ``truth`` (linear radiance).
+
+    The image is first multiplied by :func:`fit_scale`. For PU21 both are put on an HDR
+    display by the same factor: the truth's maximum (over ``mask``) to
+    ``display_peak_cdm2``. ``zero_fraction``: valid pixels the image leaves at 0 or below.
+    """
+    img = np.asarray(image, dtype=np.float64)
+    t = np.asarray(truth, dtype=np.float64)
+    if img.shape != t.shape:
+        raise ValueError(f"compare_images: image {img.shape} and truth {t.shape} differ")
+    ok = _valid(t, mask)
+    if not ok.any():
+        raise ValueError("compare_images: no valid pixel (truth > 0 inside the mask)")
+    s = fit_scale(img, t, mask=mask)
+    scaled = img * s
+    k = display_peak_cdm2 / float(t[ok].max())
+    return ImageComparison(
+        scale=s,
+        log_rmse_stops=log_rmse(scaled, t, mask=ok),
+        rel_error=relative_error(scaled, t, mask=ok),
+        pu21_psnr_db=pu21_psnr(scaled * k, t * k, mask=ok),
+        ssim=ssim_tonemapped(scaled, t, mask=ok),
+        zero_fraction=float(np.mean(img[ok] <= 0)),
+    )

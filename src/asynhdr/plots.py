@@ -1,7 +1,9 @@
-"""Figures for people: chart response, SNR per level, image mosaics. Written atomically."""
+"""Figures for people: chart response, SNR per level, k sweep, image mosaics, scene
+comparisons. Written atomically."""
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Sequence
 from pathlib import Path
@@ -13,9 +15,17 @@ from asynhdr._atomic import atomic_path
 from asynhdr.tonemap import tonemap
 
 if TYPE_CHECKING:
-    from asynhdr.experiments import ChartResult
+    from asynhdr.experiments import ChartResult, MethodResult
 
-__all__ = ["plot_chart_response", "plot_mosaic", "plot_snr_per_level"]
+__all__ = [
+    "plot_chart_response",
+    "plot_input_snr",
+    "plot_k_sweep",
+    "plot_mosaic",
+    "plot_snr_per_level",
+]
+
+_BASELINES = ("ttfe", "count")
 
 
 def _pyplot() -> Any:
@@ -30,57 +40,125 @@ def _pyplot() -> Any:
 def _save(fig: Any, path: str | os.PathLike[str]) -> Path:
     plt = _pyplot()
     target = Path(path)
+    target.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(target) as tmp:
-        fig.savefig(tmp, dpi=110, bbox_inches="tight")
+        fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
     plt.close(fig)
     return target
 
 
+def _label(r: MethodResult) -> str:
+    v = r.snr.mean_db
+    snr = "inf" if math.isinf(v) else ("-" if math.isnan(v) else f"{v:.1f}")
+    return f"{r.method} ({snr} dB, {r.snr.n_patches} p.)"
+
+
 def plot_snr_per_level(result: ChartResult, path: str | os.PathLike[str]) -> Path:
-    """SNR of each chart patch against its density, per weighting, without and with c-map
-    (the paper's Fig. 6a)."""
+    """The paper's patch SNR against density per weighting, without and with c-map
+    (its Fig. 6a); filled markers: patches that respond (counted in the mean), hollow:
+    the others."""
     plt = _pyplot()
-    scene = result.scene
-    d = np.asarray(scene.densities)
+    d = np.asarray(result.scene.densities)
     order = np.argsort(d)
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.3), sharey=True)
     for ax, use in zip(axes, (False, True), strict=True):
         for r in result.results:
-            if r.with_cmap != use or r.method in ("ttfe", "count"):
+            if r.with_cmap != use or r.method in _BASELINES:
                 continue
-            snr = np.minimum(r.stats.snr_db, 100.0)
-            ax.plot(d[order], snr[order], marker=".", label=f"{r.method} ({r.mean_snr_db:.1f} dB)")
+            snr = np.clip(r.stats.snr_db, -20.0, 80.0)
+            (line,) = ax.plot(d[order], snr[order], lw=1, label=_label(r))
+            resp = r.responding[order]
+            ax.plot(d[order][resp], snr[order][resp], "o", ms=3.5, color=line.get_color())
+            ax.plot(d[order][~resp], snr[order][~resp], "o", ms=3.5, mfc="none",
+                    color=line.get_color())
+        for r in result.frame:
+            snr = np.clip(r.stats.snr_db, -20.0, 80.0)
+            ax.plot(d[order], snr[order], ls="--", lw=1, color="0.4" if "budget" in r.method
+                    else "0.1", label=f"frame {_label(r)}")
         ax.set_title("with c-map" if use else "without c-map")
-        ax.set_xlabel("density D")
+        ax.set_xlabel("density D (radiance 160,000 lux x 10^-D)")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
-    axes[0].set_ylabel("patch SNR (dB)")
+        ax.legend(fontsize=7)
+    axes[0].set_ylabel("patch SNR 10 log10(mu^2/sigma^2) (dB)")
+    return _save(fig, path)
+
+
+def plot_input_snr(result: ChartResult, path: str | os.PathLike[str]) -> Path:
+    """Input-referred SNR (EMVA 1288) per patch against radiance, with c-map, and the
+    SNR_in = 1 line that bounds the dynamic range."""
+    plt = _pyplot()
+    truth = np.asarray(result.scene.truth)
+    order = np.argsort(truth)
+    fig, ax = plt.subplots(figsize=(7.5, 4.6))
+    for r in (*[r for r in result.results if r.with_cmap], *result.frame):
+        s = np.clip(np.asarray(r.snr_in, dtype=np.float64), 1e-3, 1e4)
+        ax.plot(truth[order], s[order], marker=".", lw=1,
+                ls="--" if r.method.startswith("mef") else "-",
+                label=f"{r.method}: DR {r.dr.dr_db:.1f} dB")
+    ax.axhline(1.0, color="k", lw=0.8)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("true patch radiance (lux)")
+    ax.set_ylabel("input-referred SNR  L |dR/dL| / sigma")
+    ax.set_title("Input-referred SNR (with c-map; dashed: frame camera)")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=7, ncol=2)
     return _save(fig, path)
 
 
 def plot_chart_response(result: ChartResult, path: str | os.PathLike[str]) -> Path:
-    """Reconstructed patch mean against true patch radiance (log-log), with the resolved
-    run marked, for every method with c-map."""
+    """Reconstructed patch mean against true patch radiance (log-log, normalised at the
+    median), every method with c-map and the frame camera; circles: the patches inside
+    the EMVA dynamic range."""
     plt = _pyplot()
     truth = np.asarray(result.scene.truth)
     order = np.argsort(truth)
-    fig, ax = plt.subplots(figsize=(7, 5))
-    for r in result.results:
-        if not r.with_cmap:
-            continue
+    fig, ax = plt.subplots(figsize=(7.5, 5))
+    for r in (*[r for r in result.results if r.with_cmap], *result.frame):
         mu = np.maximum(r.stats.mean, 1e-12)
         norm = mu / np.median(mu)
         (line,) = ax.plot(truth[order], norm[order], marker=".", lw=1,
-                          label=f"{r.method}: DR {r.dr.dr_db:.1f} dB")
-        res = r.dr.resolved
-        ax.plot(truth[res], norm[res], "o", mfc="none", color=line.get_color(), ms=7)
+                          ls="--" if r.method.startswith("mef") else "-",
+                          label=f"{r.method}: DR {r.dr.dr_db:.1f} / {r.dr_steps.dr_db:.1f} dB")
+        c = r.dr.counted
+        ax.plot(truth[c], norm[c], "o", mfc="none", color=line.get_color(), ms=7)
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("true patch radiance (lux)")
-    ax.set_ylabel("reconstructed patch mean / median")
-    ax.set_title("Chart response (circles: resolved levels)")
+    ax.set_ylabel("patch mean / median patch mean")
+    ax.set_title("Chart response, with c-map (circles: inside the EMVA range;\n"
+                 "legend: DR EMVA / DR by the paper's steps)")
     ax.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=7)
+    return _save(fig, path)
+
+
+def plot_k_sweep(sweeps: dict[str, list[dict[str, Any]]], path: str | os.PathLike[str],
+                 *, paper_k: float = 10.0) -> Path:
+    """Mean SNR of the exponential weighting ``2^(-k t)`` against ``k`` (the paper's Fig.
+    5b), per sensor, without (dashed) and with (solid) c-map."""
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.2))
+    for i, (name, rows) in enumerate(sweeps.items()):
+        if not rows:
+            continue
+        color = f"C{i}"
+        ks = [r["k"] for r in rows]
+        for tag, ls in (("raw", "--"), ("cmap", "-")):
+            snr = [np.nan if r[f"snr_db_{tag}"] is None else r[f"snr_db_{tag}"] for r in rows]
+            axes[0].plot(ks, snr, ls=ls, marker=".", color=color,
+                         label=f"{name} {'with' if tag == 'cmap' else 'no'} c-map")
+            axes[1].plot(ks, [r[f"dr_db_{tag}"] for r in rows], ls=ls, marker=".",
+                         color=color, label=f"{name} {'with' if tag == 'cmap' else 'no'} c-map")
+    for ax in axes:
+        ax.axvline(paper_k, color="0.6", lw=0.8)
+        ax.set_xlabel("k of 2^(-k t)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    axes[0].set_ylabel("mean patch SNR over responding patches (dB)")
+    axes[1].set_ylabel("dynamic range, EMVA (dB)")
+    axes[0].set_title("k sweep: SNR (grey line: the paper's k = 10)")
+    axes[1].set_title("k sweep: dynamic range")
     return _save(fig, path)
 
 
@@ -91,17 +169,31 @@ def plot_mosaic(
     *,
     columns: int = 4,
     tonemap_method: str = "log",
+    reference: np.ndarray | None = None,
 ) -> Path:
-    """Tone-mapped images side by side with titles."""
+    """Tone-mapped images side by side with titles. With ``reference``, every image uses
+    the reference's log tone map (same black and white in radiance), so brightness can
+    be compared across panels; otherwise each is tone-mapped on its own."""
     plt = _pyplot()
     n = len(images)
+    columns = min(columns, n)
     rows = (n + columns - 1) // columns
     h, w = images[0].shape
-    fig, axes = plt.subplots(rows, columns, figsize=(3.2 * columns, 3.2 * rows * h / w + 0.4))
+    fig, axes = plt.subplots(rows, columns,
+                             figsize=(3.2 * columns, 3.2 * rows * h / w + 0.45 * rows))
     axes = np.atleast_1d(axes).ravel()
     for ax in axes:
         ax.axis("off")
+    lo = hi = 0.0
+    if reference is not None:
+        pos = reference[reference > 0]
+        lo, hi = (float(v) for v in np.percentile(pos, [0.5, 99.5]))
     for ax, img, title in zip(axes, images, titles, strict=False):
-        ax.imshow(tonemap(img, method=tonemap_method), cmap="gray", vmin=0, vmax=255)
-        ax.set_title(title, fontsize=9)
+        if reference is not None and hi > lo:
+            v = (np.log(np.clip(img, lo, hi)) - math.log(lo)) / (math.log(hi) - math.log(lo))
+            disp = np.floor(np.clip(v, 0, 1) * 255 + 0.5)
+        else:
+            disp = tonemap(img, method=tonemap_method)
+        ax.imshow(disp, cmap="gray", vmin=0, vmax=255)
+        ax.set_title(title, fontsize=8)
     return _save(fig, path)

@@ -9,7 +9,9 @@ interest and true radiance of each patch. Three sources:
   has radiance ``illuminance_lux * 10**(-D_i)``;
 - :func:`flat_field`: a uniform field (threshold calibration, the c-map);
 - :func:`from_radiance_map`: a real HDR luminance map (read by
-  :mod:`asynhdr.io.images`) resized to the sensor.
+  :mod:`asynhdr.io.images`) resized to the sensor with its aspect kept (padded or
+  cropped, never stretched unless asked), put in absolute units by
+  :func:`exposure_scale`.
 
 Everything here is pure: no file access.
 """
@@ -31,8 +33,10 @@ __all__ = [
     "REC709_LUMA",
     "Roi",
     "Scene",
+    "exposure_scale",
     "flat_field",
     "from_radiance_map",
+    "log_average",
     "luminance",
     "step_chart",
 ]
@@ -331,6 +335,13 @@ def _center_crop_to_aspect(a: np.ndarray, width: int, height: int) -> np.ndarray
     return a[y0 : y0 + new_h, :]
 
 
+def _fit_size(h: int, w: int, width: int, height: int) -> tuple[int, int]:
+    """Largest (rows, cols) with the map's aspect that fits in the sensor."""
+    if w * height >= h * width:  # wider than the sensor: full width
+        return max(1, round(h * width / w)), width
+    return height, max(1, round(w * height / h))
+
+
 def from_radiance_map(
     radiance: npt.ArrayLike,
     *,
@@ -339,7 +350,8 @@ def from_radiance_map(
     scale: float = 1.0,
     unit: str = "relative",
     name: str = "",
-    fit: str = "stretch",
+    fit: str = "pad",
+    pad_radiance: float = 0.0,
 ) -> Scene:
     """A scene from a linear luminance map, resized to the sensor and scaled.
 
@@ -355,13 +367,24 @@ def from_radiance_map(
     width, height:
         Sensor size, in pixels.
     scale:
-        Factor applied after resizing (``> 0``), e.g. to set absolute units.
+        Factor applied after resizing (``> 0``), e.g. to set absolute units
+        (:func:`exposure_scale`).
     unit, name:
         Stored in the :class:`Scene`.
     fit:
-        ``"stretch"`` resizes to exactly ``width`` x ``height`` whatever the aspect
-        ratio; ``"crop"`` first crops the centre of the map to the sensor's aspect
-        ratio, so nothing is distorted.
+        ``"pad"`` (default) resizes the whole map to the largest size with its own
+        aspect ratio that fits the sensor and centres it, the rest of the sensor at
+        ``pad_radiance`` (an opaque surround); ``"crop"`` first crops the centre of the
+        map to the sensor's aspect ratio; ``"stretch"`` resizes to exactly ``width`` x
+        ``height`` whatever the aspect ratio (distorts).
+    pad_radiance:
+        Radiance of the padding (in ``unit``, after ``scale``).
+
+    Returns
+    -------
+    Scene
+        With ``rois={0: (y0, y1, x0, x1)}``: where the map lies on the sensor (the whole
+        sensor unless padded).
 
     Raises
     ------
@@ -381,25 +404,60 @@ def from_radiance_map(
         raise ValueError(f"from_radiance_map: width and height must be >= 1, got {width}x{height}")
     if not (math.isfinite(scale) and scale > 0):
         raise ValueError(f"from_radiance_map: scale must be finite and > 0, got {scale}")
-    if fit not in ("stretch", "crop"):
-        raise ValueError(f"from_radiance_map: fit must be 'stretch' or 'crop', got {fit!r}")
+    if fit not in ("stretch", "crop", "pad"):
+        raise ValueError(
+            f"from_radiance_map: fit must be 'pad', 'crop' or 'stretch', got {fit!r}")
+    if not (math.isfinite(pad_radiance) and pad_radiance >= 0):
+        raise ValueError(f"from_radiance_map: pad_radiance must be >= 0, got {pad_radiance}")
     a = a.astype(np.float32, copy=False)
     _check_finite_nonnegative(a, "from_radiance_map: radiance")
     if fit == "crop":
         a = _center_crop_to_aspect(a, width, height)
     h, w = a.shape
-    if (h, w) == (height, width):
-        out = a.copy()
+    rows, cols = (height, width) if fit != "pad" else _fit_size(h, w, width, height)
+    if (h, w) == (rows, cols):
+        inner = a.copy()
     else:
-        interp = cv2.INTER_AREA if (width <= w and height <= h) else cv2.INTER_LINEAR
-        out = cv2.resize(np.ascontiguousarray(a), (width, height), interpolation=interp)
-    out = (out.astype(np.float64) * scale).astype(np.float32)
-    if not np.all(np.isfinite(out)):
+        interp = cv2.INTER_AREA if (cols <= w and rows <= h) else cv2.INTER_LINEAR
+        inner = cv2.resize(np.ascontiguousarray(a), (cols, rows), interpolation=interp)
+    inner = (inner.astype(np.float64) * scale).astype(np.float32)
+    if not np.all(np.isfinite(inner)):
         raise ValueError(
             f"from_radiance_map: scale={scale} overflows float32 "
             f"(max input {float(a.max()):.6g})"
         )
-    return Scene(radiance=np.maximum(out, 0.0), unit=unit, name=name)
+    y0, x0 = (height - rows) // 2, (width - cols) // 2
+    out = np.full((height, width), pad_radiance, dtype=np.float32)
+    out[y0:y0 + rows, x0:x0 + cols] = np.maximum(inner, 0.0)
+    return Scene(radiance=out, unit=unit, name=name,
+                 rois={0: (y0, y0 + rows, x0, x0 + cols)})
+
+
+def log_average(radiance: npt.ArrayLike, *, floor_fraction: float = 1e-6) -> float:
+    """The log-average (geometric mean) ``exp(mean(ln max(L, f L_max)))`` of the
+    positive part of a map, ``f = floor_fraction`` keeping black pixels from dragging it
+    to zero (Reinhard et al. 2002's "key" of a scene uses the same average)."""
+    a = np.asarray(radiance, dtype=np.float64)
+    pos = a[a > 0]
+    if pos.size == 0:
+        raise ValueError("log_average: the map has no positive value")
+    return float(np.exp(np.mean(np.log(np.maximum(pos, floor_fraction * pos.max())))))
+
+
+def exposure_scale(radiance: npt.ArrayLike, *, target: float) -> float:
+    """Automatic exposure: the factor that puts the scene's log-average at ``target``.
+
+    ``s = target / log_average(L)``. HDR files hold relative values (or absolute
+    values of another scene); multiplied by ``s`` they become the illuminance the rig
+    sees (lux), with the scene's middle at ``target``. For the rig the middle of its
+    working range is ``L_const sqrt(CR_1)``: the geometric centre between ``L_const``
+    (darker pixels only see the reference fall) and ``L_const CR_1`` (brighter pixels
+    start the cycle already dominated by the scene; ``CR_1`` the scene panel's
+    contrast ratio), see :func:`asynhdr.evaluate.rig_mid_radiance`.
+    """
+    if not (math.isfinite(target) and target > 0):
+        raise ValueError(f"exposure_scale: target must be > 0, got {target}")
+    return target / log_average(radiance)
 
 
 def luminance(rgb: npt.ArrayLike) -> np.ndarray:

@@ -138,22 +138,28 @@ def demo(
     with atomic_path(out / "results.json") as tmp:
         tmp.write_text(json.dumps(summary, indent=1))
 
-    table = Table(title="Mean patch SNR (dB) on the 36-level chart, last cycle "
-                  "(no c-map / with c-map)")
-    table.add_column("weighting")
+    table = Table(title="Mean patch SNR (dB) on the 36-level chart, last cycle, central "
+                  "16x16 px of each patch, over the patches that respond (no c-map / with "
+                  "c-map \\[patches])")
+    table.add_column("method")
     table.add_column(f"{preset}", justify="right")
     if ref is not None:
         table.add_column(f"{ref.metadata['sensor']['name']}", justify="right")
     table.add_column("paper", justify="right")
-    table.add_column(f"DR {preset} (dB)", justify="right")
-    table.add_column("resolved D", justify="right")
-    table.add_column("rel. RMSE", justify="right")
+    table.add_column("DR EMVA (dB)", justify="right")
+    table.add_column("DR steps (dB)", justify="right")
+    table.add_column("rel. error", justify="right")
+    table.add_column("grey levels", justify="right")
     if ref is not None:
-        table.add_column(f"DR {ref.metadata['sensor']['name']} (dB)", justify="right")
+        table.add_column(f"DR {ref.metadata['sensor']['name']}", justify="right")
 
     def pair(r: Any, m: str) -> str:
         a, b = r.get(m, False), r.get(m, True)
-        return f"{a.mean_snr_db:6.2f} / {b.mean_snr_db:6.2f}".replace("inf", "  inf")
+        def n(s: Any) -> str:
+            return f"{s.n_patches}" + (f"+{s.n_noiseless}" if s.n_noiseless else "")
+
+        return (f"{a.snr.mean_db:6.2f} / {b.snr.mean_db:6.2f} "
+                f"\\[{n(a.snr)}/{n(b.snr)}]").replace("inf", "  inf")
 
     for m in (*WEIGHTINGS, "ttfe", "count", "invert"):
         try:
@@ -167,23 +173,30 @@ def demo(
             row.append(pair(ref, m))
         pa = PAPER_SNR_DB.get(m)
         row.append(f"{pa[0]:6.2f} / {pa[1]:6.2f}" if pa else "-")
-        row += [f"{b.dr.dr_db:.1f}", f"{b.dr.d_brightest:.2f}-{b.dr.d_darkest:.2f}",
-                f"{float(np.median(b.rel_rmse)):.3f}"]
+        row += [f"{b.dr.dr_db:.1f}", f"{b.dr_steps.dr_db:.1f}",
+                f"{b.rel_error_median:.3f}", f"{b.grey_levels}"]
         if ref is not None:
             row.append(f"{ref.get(m, True).dr.dr_db:.1f}")
         table.add_row(*row)
     console.print(table)
-    console.print("DR, resolved densities and rel. RMSE (median over patches of the relative "
-                  "RMS error against the true radiance, one scale fitted) are with the c-map.")
+    console.print(
+        "\\[patches]: patches that respond (at least half the region fired; input-referred "
+        f"SNR >= 1) and have noise, of {res.get('exp', True).stats.mean.size} (+N: "
+        "responding patches without noise, infinite SNR, left out of the mean). DR EMVA: "
+        "20 log10(Lmax/Lmin) over the longest run with input-referred SNR >= 1 and a "
+        "strictly monotone response; DR steps: the paper's criterion (neighbouring means "
+        "apart by more than both spreads). "
+        "DR, rel. error (median relative RMS error against the true radiance after one "
+        "global scale) and grey levels (occupied 8-bit log levels) are with the c-map.")
     ro = res.metadata.get("readout") or {}
     if ro.get("emitted"):
         console.print(f"readout ({preset}): {ro['emitted']:,} emitted, {ro['delivered']:,} "
                       f"delivered, {ro['delayed']:,} delayed, {ro['dropped']:,} dropped")
     best = res.get("exp", True)
     console.print(
-        f"Dynamic range (exp, k={k:g}, with c-map): [bold]{best.dr.dr_db:.1f} dB[/] "
-        f"(densities {best.dr.d_brightest:.2f} to {best.dr.d_darkest:.2f}); "
-        f"paper: {PAPER_DR_DB} dB (0.10 to 5.23)")
+        f"Dynamic range (exp, k={k:g}, with c-map): [bold]{best.dr.dr_db:.1f} dB[/] EMVA "
+        f"({best.dr.l_min:.3g} to {best.dr.l_max:.3g} lux), {best.dr_steps.dr_db:.1f} dB by "
+        f"the paper's steps; paper: {PAPER_DR_DB} dB (densities 0.10 to 5.23)")
     snr = res.snr_table()
     order_ok = all(snr[a][1] < snr[b][1] for a, b in
                    zip(list(WEIGHTINGS)[:-1], list(WEIGHTINGS)[1:], strict=True))
@@ -198,8 +211,9 @@ def demo(
 # --------------------------------------------------------------------------- simulate
 
 
-def _scene_from_spec(spec: str, width: int, height: int, scale: float) -> Any:
-    from asynhdr.scene import flat_field, from_radiance_map, step_chart
+def _scene_from_spec(spec: str, width: int, height: int, scale: float | None,
+                     target: float = 316.0) -> Any:
+    from asynhdr.scene import exposure_scale, flat_field, from_radiance_map, step_chart
 
     if spec == "chart":
         return step_chart(width=width, height=height)
@@ -210,14 +224,19 @@ def _scene_from_spec(spec: str, width: int, height: int, scale: float) -> Any:
             fail(f"scene {spec!r}: expected flat:RADIANCE with a number, e.g. flat:1600")
         if not (value >= 0 and math.isfinite(value)):
             fail(f"scene {spec!r}: radiance must be finite and >= 0")
-        return flat_field(width=width, height=height, radiance=value * scale, unit="lux")
+        return flat_field(width=width, height=height, radiance=value * (scale or 1.0),
+                          unit="lux")
     from asynhdr.io.images import read_radiance
 
     radiance, info = read_radiance(spec)
     if info.get("clipped_negative"):
         err_console.print(f"{spec}: {info['clipped_negative']} negative pixels clipped to 0")
+    if scale is None:  # automatic exposure: the scene's log-average at the rig's middle
+        scale = exposure_scale(radiance, target=target)
+        err_console.print(f"{spec}: automatic exposure, x{scale:.4g} to lux (log-average at "
+                          f"{target:.4g} lux; --scale to set it)")
     return from_radiance_map(radiance, width=width, height=height, scale=scale,
-                             name=Path(spec).stem)
+                             name=Path(spec).stem, unit="lux", fit="pad")
 
 
 @app.command()
@@ -235,7 +254,9 @@ def simulate(
     t1_shape: str = typer.Option("linear", help="Scene panel ramp: linear | exponential."),
     t2_shape: str = typer.Option("linear", help="Reference panel ramp: linear | exponential."),
     l_const: float = typer.Option(10.0, help="Reference radiance, in the scene's unit."),
-    scale: float = typer.Option(1.0, help="Multiply the scene radiance by this."),
+    scale: float | None = typer.Option(None, help="Multiply the scene radiance by this "
+                                       "(default for HDR images: automatic exposure, the "
+                                       "log-average at L_const sqrt(contrast ratio 1))."),
     seed: int = typer.Option(0, help="Seed of this capture's randomness."),
     sensor_seed: int = typer.Option(1, help="Seed of the sensor's frozen mismatch "
                                     "(same seed, same sensor)."),
@@ -252,7 +273,10 @@ def simulate(
         sensor = get_preset(preset)
         rig = Rig(period_us=period_us, ramp_fraction=ramp_fraction, t1_shape=t1_shape,  # type: ignore[arg-type]
                   t2_shape=t2_shape, l_const=l_const)  # type: ignore[arg-type]
-        sc = _scene_from_spec(scene, width, height, scale)
+        if scale is not None and not (scale > 0 and math.isfinite(scale)):
+            fail(f"--scale must be a positive number, got {scale}")
+        sc = _scene_from_spec(scene, width, height, scale,
+                              target=l_const * math.sqrt(rig.contrast_ratio_1))
         with progress_bar() as update:
             rec = run(sc, rig=rig, sensor=sensor, n_cycles=n_cycles, rng=seed,
                       sensor_seed=sensor_seed, engine=engine, dt_us=dt_us,

@@ -1,0 +1,95 @@
+"""HDR scenes: aspect kept, automatic exposure, evaluation against ground truth; the bench."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from asynhdr.cli import _register, app
+from asynhdr.evaluate import evaluate_scene, rig_mid_radiance
+from asynhdr.rig import Rig
+from asynhdr.scene import exposure_scale, from_radiance_map, log_average
+
+_register()
+runner = CliRunner()
+
+
+def test_portrait_map_is_padded_not_stretched() -> None:
+    src = np.arange(874 * 644, dtype=np.float32).reshape(874, 644) % 97 + 1.0
+    s = from_radiance_map(src, width=640, height=480, pad_radiance=0.0)
+    y0, y1, x0, x1 = s.rois[0]
+    cols = round(644 * 480 / 874)  # 354: the map's aspect at the sensor's full height
+    assert (y0, y1) == (0, 480) and x1 - x0 == cols and x0 == (640 - cols) // 2
+    assert abs((x1 - x0) / (y1 - y0) - 644 / 874) < 1 / 480
+    assert np.all(s.radiance[:, :x0] == 0) and np.all(s.radiance[:, x1:] == 0)
+    assert float(s.radiance[:, x0:x1].mean()) == pytest.approx(float(src.mean()), rel=0.01)
+    wide = from_radiance_map(np.ones((100, 400)), width=64, height=48)
+    assert wide.rois[0] == (16, 32, 0, 64)  # 64 x 16 keeps 4:1
+
+
+def test_automatic_exposure_puts_the_log_average_at_the_target() -> None:
+    a = np.array([[1.0, 100.0], [10.0, 0.0]])  # the zero is left out
+    assert log_average(a) == pytest.approx(10.0)  # (1 * 100 * 10)^(1/3)
+    s = exposure_scale(a, target=316.0)
+    assert s == pytest.approx(31.6)
+    assert log_average(a * s) == pytest.approx(316.0)
+    assert rig_mid_radiance(Rig()) == pytest.approx(10.0 * math.sqrt(1000.0))
+
+
+def test_evaluate_scene_small() -> None:
+    y, x = np.mgrid[0:60, 0:80]
+    scene = np.exp((x / 80.0) * 8.0) * (1.0 + 0.3 * np.sin(y / 5.0))  # 11.5 stops
+    ev = evaluate_scene(scene, name="ramp", width=96, height=72, sensor="ideal", n_cycles=2)
+    assert set(ev.metrics) >= {"raw", "exp", "invert", "mef-10", "mef-budget", "frame-auto"}
+    assert ev.metadata["region"] == [0, 72, 0, 96]
+    assert log_average(ev.scene.radiance) == pytest.approx(rig_mid_radiance(Rig()), rel=0.05)
+    for m in ev.metrics.values():
+        assert math.isfinite(m.log_rmse_stops) and 0 < m.ssim <= 1
+    # ten well-placed exposures recover the scene to a small fraction of a stop
+    assert ev.metrics["mef-10"].log_rmse_stops < 0.1
+    assert ev.capture_s["mef-budget"] <= 0.05 + 1e-12
+    assert ev.capture_s["raw"] == pytest.approx(0.05)
+
+
+def test_evaluate_cli_on_a_real_portrait_scene(data_dir: Path, manifest: dict[str, Any],
+                                               tmp_path: Path) -> None:
+    facts = manifest["hdr"]["hdr/scenes/Desk.exr"]["what"]
+    assert "644x874" in facts
+    r = runner.invoke(app, ["evaluate", str(data_dir / "hdr" / "scenes" / "Desk.exr"),
+                            "--out", str(tmp_path), "--width", "160", "--height", "120"])
+    assert r.exit_code == 0, r.output
+    res = json.loads((tmp_path / "evaluate.json").read_text())
+    sc = res["scenes"][0]
+    y0, y1, x0, x1 = sc["metadata"]["region"]
+    assert (y1 - y0, x1 - x0) == (120, round(644 * 120 / 874))
+    assert sc["metadata"]["auto_exposure"] and sc["metadata"]["scale"] > 100
+    assert (tmp_path / "scenes" / "Desk.png").is_file()
+    # --scale wins over the automatic exposure
+    r = runner.invoke(app, ["evaluate", str(data_dir / "hdr" / "scenes" / "Desk.exr"),
+                            "--out", str(tmp_path / "s"), "--width", "160", "--height", "120",
+                            "--scale", "2000"])
+    assert r.exit_code == 0, r.output
+    sc2 = json.loads((tmp_path / "s" / "evaluate.json").read_text())["scenes"][0]
+    assert sc2["metadata"]["scale"] == 2000 and not sc2["metadata"]["auto_exposure"]
+
+
+@pytest.mark.slow
+def test_bench_quick(tmp_path: Path) -> None:
+    r = runner.invoke(app, ["bench", "--quick", "--out", str(tmp_path), "--presets",
+                            "ideal,v2e", "--no-scenes"])
+    assert r.exit_code == 0, r.output
+    res = json.loads((tmp_path / "bench.json").read_text())
+    assert set(res["presets"]) == {"ideal", "v2e"}
+    v2e = res["presets"]["v2e"]
+    assert [row["k"] for row in v2e["k_sweep"]] == [1.0, 2.0, 5.0, 10.0, 20.0]
+    assert {m["method"] for m in v2e["frame_camera"]} == {"mef-10", "mef-budget"}
+    page = (tmp_path / "report.html").read_text()
+    assert "SNR table" in page and "k sweep" in page
+    for rel in res["figures"].values():
+        assert (tmp_path / rel).is_file(), rel
