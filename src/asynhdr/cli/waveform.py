@@ -17,7 +17,7 @@ from asynhdr.rig import Rig
 from asynhdr.waveform import DEFAULT_CARRIER_HZ, DEFAULT_SAMPLE_RATE_HZ, Design, design
 from asynhdr.waveform_io import SIDECAR_NAME
 
-__all__ = ["waveform"]
+__all__ = ["build_design", "waveform"]
 
 _RIG = Rig()
 PNG_NAME = "waveform.png"
@@ -37,6 +37,28 @@ def _panel(preset: str, *, contrast_ratio: float | None, rise_us: float | None,
                              fall_us=base.response.fall_us if fall_us is None else fall_us)
         base = dataclasses.replace(base, response=resp)
     return base
+
+
+def build_design(*, period_us: int = _RIG.period_us,
+                 sample_rate_hz: float = DEFAULT_SAMPLE_RATE_HZ,
+                 ramp_fraction: float = _RIG.ramp_fraction, t1_shape: str = _RIG.t1_shape,
+                 t2_shape: str = _RIG.t2_shape, t2_stop: float = _RIG.t2_stop,
+                 panel1: str = "tn_generic", panel2: str = "tn_generic_nb",
+                 contrast_ratio: float | None = None, rise_us: float | None = None,
+                 fall_us: float | None = None, carrier_hz: float | None = DEFAULT_CARRIER_HZ,
+                 pre_emphasis: bool = True) -> Design:
+    """The design ``asynhdr waveform`` makes from its options (defaults: its defaults)."""
+    p1 = _panel(panel1, contrast_ratio=contrast_ratio, rise_us=rise_us, fall_us=fall_us)
+    p2 = _panel(panel2, contrast_ratio=contrast_ratio, rise_us=rise_us, fall_us=fall_us)
+    rig = Rig(period_us=period_us, ramp_fraction=ramp_fraction,
+              t1_shape=t1_shape,  # type: ignore[arg-type]
+              t2_shape=t2_shape,  # type: ignore[arg-type]
+              t2_stop=t2_stop,
+              contrast_ratio_1=p1.contrast_ratio, contrast_ratio_2=p2.contrast_ratio)
+    t1, t2 = rig.waveforms()
+    return design(t1, t2, panel1=p1, panel2=p2, period_us=period_us,
+                  sample_rate_hz=sample_rate_hz, pre_emphasis=pre_emphasis,
+                  ramp_fraction=ramp_fraction, carrier_hz=carrier_hz)
 
 
 def _plot(d: Design, path: Path) -> None:
@@ -112,17 +134,11 @@ def waveform(
     a JSON sidecar and a plot."""
     console = Console()
     try:
-        p1 = _panel(panel1, contrast_ratio=contrast_ratio, rise_us=rise_us, fall_us=fall_us)
-        p2 = _panel(panel2, contrast_ratio=contrast_ratio, rise_us=rise_us, fall_us=fall_us)
-        rig = Rig(period_us=period_us, ramp_fraction=ramp_fraction,
-                  t1_shape=t1_shape,  # type: ignore[arg-type]
-                  t2_shape=t2_shape,  # type: ignore[arg-type]
-                  t2_stop=t2_stop,
-                  contrast_ratio_1=p1.contrast_ratio, contrast_ratio_2=p2.contrast_ratio)
-        t1, t2 = rig.waveforms()
-        d = design(t1, t2, panel1=p1, panel2=p2, period_us=period_us,
-                   sample_rate_hz=sample_rate_hz, pre_emphasis=pre_emphasis,
-                   ramp_fraction=ramp_fraction, carrier_hz=None if dc else carrier_hz)
+        d = build_design(period_us=period_us, sample_rate_hz=sample_rate_hz,
+                         ramp_fraction=ramp_fraction, t1_shape=t1_shape, t2_shape=t2_shape,
+                         t2_stop=t2_stop, panel1=panel1, panel2=panel2,
+                         contrast_ratio=contrast_ratio, rise_us=rise_us, fall_us=fall_us,
+                         carrier_hz=None if dc else carrier_hz, pre_emphasis=pre_emphasis)
     except ValueError as exc:
         console.print(f"[red]error:[/red] {escape(str(exc))}")
         raise typer.Exit(code=2) from None
