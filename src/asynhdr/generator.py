@@ -468,7 +468,7 @@ def _open(resource: Any, visa_library: str, timeout_ms: int) -> tuple[Any, Calla
                              "'asynhdr[generator]'") from None
     try:
         rm = pyvisa.ResourceManager(visa_library)
-        inst = rm.open_resource(resource)
+        inst: Any = rm.open_resource(resource)
     except (pyvisa.errors.Error, OSError, ValueError) as exc:
         raise GeneratorError(f"{resource}: cannot open the VISA resource ({exc})") from None
     inst.write_termination = "\n"
