@@ -135,3 +135,44 @@ def test_colour_scene_through_the_rig():
     # reduced to grey, the same scene has no colour left: a large error
     grey = np.repeat(colour._luma(out)[..., None], 3, axis=2)
     assert colour_errors(grey, sc.rgb, mask=inner)["ciede2000_median"] > 20
+
+
+def test_cli_colour_simulate_and_reconstruct(tmp_path):
+    from typer.testing import CliRunner
+
+    import asynhdr.cli.core  # noqa: F401  (registers the commands)
+    from asynhdr.cli import app
+    from asynhdr.io import open_recording
+    from asynhdr.io.images import read_image, read_metadata
+
+    rgb = np.ones((24, 24, 3), dtype=np.float32)
+    rgb[:, :12] = [400.0, 100.0, 25.0]
+    rgb[:, 12:] = [20.0, 60.0, 300.0]
+    scene = tmp_path / "patches.npy"
+    np.save(scene, rgb)
+    runner = CliRunner()
+    grey = runner.invoke(app, ["simulate", str(scene), "--width", "24", "--height", "24",
+                               "--n-cycles", "1", "--preset", "ideal", "-o",
+                               str(tmp_path / "grey.h5")])
+    assert grey.exit_code == 0, grey.output
+    assert "reduced to luminance" in " ".join(grey.output.split())
+    assert "cfa" not in open_recording(tmp_path / "grey.h5").metadata
+    res = runner.invoke(app, ["simulate", str(scene), "--colour", "--width", "24", "--height",
+                              "24", "--n-cycles", "1", "--preset", "ideal", "-o",
+                              str(tmp_path / "col.h5")])
+    assert res.exit_code == 0, res.output
+    assert open_recording(tmp_path / "col.h5").metadata["cfa"] == "rggb"
+    out = tmp_path / "out"
+    rec = runner.invoke(app, ["reconstruct", str(tmp_path / "col.h5"), "--method", "invert",
+                              "-o", str(out), "--formats", "exr,png"])
+    assert rec.exit_code == 0, rec.output
+    assert "demosaiced (malvar) to RGB" in rec.output
+    img = read_image(out / "col_invert_0000.exr")
+    assert img.shape == (24, 24, 3)
+    assert read_metadata(out / "col_invert_0000.exr")["cfa"] == "rggb"
+    inner = np.zeros((24, 24), dtype=bool)
+    inner[2:-2, 2:10] = inner[2:-2, 14:-2] = True
+    assert colour_errors(img, rgb, mask=inner)["ciede2000_median"] < 2.0
+    bad = runner.invoke(app, ["simulate", "chart", "--cfa", "rggb", "-o",
+                              str(tmp_path / "x.h5")])
+    assert bad.exit_code == 2 and "needs an RGB image" in " ".join(bad.output.split())

@@ -303,13 +303,21 @@ def reconstruct_colour(image: npt.ArrayLike, pattern: str = DEFAULT_CFA, *,
                        transmittance: npt.ArrayLike = (1.0, 1.0, 1.0), method: str = "malvar",
                        domain: str = "log") -> np.ndarray:
     """RGB from a reconstructed image of a colour recording: divide each pixel by its
-    filter's transmittance ``t_c`` (equation 1), then :func:`demosaic`."""
+    filter's transmittance ``t_c`` (equation 1), then :func:`demosaic`. Pixels of value 0
+    or NaN carry no information (a radiometric method found no event to invert) and are
+    filled from the valid samples of their channel two pixels away."""
     a = np.asarray(image, dtype=np.float64)
     t = _transmittance(transmittance)
     ch = cfa_channels(pattern, height=a.shape[0], width=a.shape[1]) if a.ndim == 2 else None
     if ch is None:
         raise ValueError(f"reconstruct_colour: expected a 2-D mosaic, got shape {a.shape}")
-    return demosaic(a / t[ch], pattern, method=method, domain=domain)
+    x = a / t[ch]
+    missing = ~(x > 0)  # no information (0 or NaN): filled from the same channel around
+    if missing.any():
+        logger.info("reconstruct_colour: %d pixels without information filled from their "
+                    "neighbours", int(missing.sum()))
+        x = np.where(missing, np.nan, x)
+    return demosaic(x, pattern, method=method, domain=domain)
 
 
 # --------------------------------------------------------------------------- colour error
