@@ -13,7 +13,14 @@ from asynhdr.cli import app
 from asynhdr.panel import get_panel, tn_panel
 from asynhdr.rig import Rig, Waveform
 from asynhdr.simulate import simulate
-from asynhdr.waveform import design, read_csv
+from asynhdr.waveform import DEFAULT_CARRIER_HZ, design, read_csv
+from asynhdr.waveform_io import (
+    channel_scale,
+    read_arb,
+    read_column_csv,
+    read_siglent_csv,
+    read_waveform_files,
+)
 
 PERIOD_US = 50_000
 FS = 200_000.0
@@ -124,8 +131,9 @@ def test_design_errors():
 
 def test_carrier_keeps_transmittance():
     p1, p2 = get_panel("tn_generic"), get_panel("tn_generic_nb")
-    dc = _design(p1, p2)
-    ac = _design(p1, p2, carrier_hz=1000.0)
+    dc = _design(p1, p2, carrier_hz=None)
+    ac = _design(p1, p2)  # the AC carrier is the default
+    assert ac.carrier_hz == DEFAULT_CARRIER_HZ == 1000.0 and dc.carrier_hz is None
     for a, b in zip(ac.channels, dc.channels, strict=True):
         np.testing.assert_array_equal(np.abs(a.voltage_v), b.voltage_v)
         np.testing.assert_array_equal(a.result, b.result)
@@ -186,11 +194,13 @@ def test_cli_writes_csv_plot_and_prints_errors(tmp_path):
                                  "exponential", "--panel1", "fast_shutter", "--panel2",
                                  "fast_shutter", "--sample-rate-hz", "100000"])
     assert result.exit_code == 0, result.output
-    assert (tmp_path / "waveform.csv").is_file()
+    assert not (tmp_path / "waveform.csv").exists()
     png = (tmp_path / "waveform.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n"
-    time_s, v1, _, header = read_csv(tmp_path / "waveform.csv")
-    assert time_s.size == 5000 and header["sample_rate_hz"] == 100_000.0
+    files = read_waveform_files(tmp_path)
+    v1 = files.voltage_v[0]
+    assert files.n_samples == 5000 and files.sample_rate_hz == 100_000.0
+    assert files.carrier_hz == 1000.0 and v1.min() < 0 < v1.max()  # AC by default
     out = " ".join(result.output.split())
     assert "with pre-emphasis" in out and "without" in out
     rig = Rig(t1_shape="exponential")
@@ -200,7 +210,7 @@ def test_cli_writes_csv_plot_and_prints_errors(tmp_path):
                ramp_fraction=rig.ramp_fraction)
     assert f"{d.channels[0].rms_error_pct:.3f} %" in out
     assert f"{d.channels[1].naive_rms_error_pct:.3f} %" in out
-    np.testing.assert_allclose(v1, d.samples(1), rtol=1e-11, atol=1e-12)
+    np.testing.assert_array_equal(v1, d.samples(1))
 
 
 def test_cli_options_and_errors(tmp_path):
@@ -209,10 +219,88 @@ def test_cli_options_and_errors(tmp_path):
                                  "--rise-us", "800", "--fall-us", "400",
                                  "--contrast-ratio", "500"])
     assert result.exit_code == 0, result.output
-    _, _, _, header = read_csv(tmp_path / "waveform.csv")
-    assert header["pre_emphasis"] is False
-    assert header["panel1"]["response"] == {"rise_us": 800.0, "fall_us": 400.0}
-    assert header["panel2"]["curve"]["contrast_ratio"] == pytest.approx(500.0)
+    meta = read_waveform_files(tmp_path).metadata
+    assert meta["pre_emphasis"] is False
+    assert meta["panels"][0]["response"] == {"rise_us": 800.0, "fall_us": 400.0}
+    assert meta["panels"][1]["curve"]["contrast_ratio"] == pytest.approx(500.0)
+    dc = runner.invoke(app, ["waveform", "--out", str(tmp_path / "dc"), "--dc"])
+    assert dc.exit_code == 0, dc.output
+    assert "degrades" in " ".join(dc.output.split())
+    files = read_waveform_files(tmp_path / "dc")
+    assert files.carrier_hz is None and files.voltage_v[0].min() >= 0
     bad = runner.invoke(app, ["waveform", "--out", str(tmp_path), "--sample-rate-hz", "3"])
     assert bad.exit_code == 2
     assert "whole number" in " ".join(bad.output.split())
+
+
+# --- generator files -----------------------------------------------------------------
+
+def test_channel_scale_by_hand():
+    sc = channel_scale(np.array([-5.0, 0.0, 5.0, 3.0]))
+    assert sc.amplitude_vpp == 10.0 and sc.offset_v == 0.0
+    np.testing.assert_array_equal(sc.normalized, [-1.0, 0.0, 1.0, 0.6])
+    np.testing.assert_array_equal(sc.codes(), [-32767, 0, 32767, 19660])
+    dc = channel_scale(np.array([1.0, 4.0]))  # a DC drive: offset 2.5 V, 3 Vpp
+    assert (dc.amplitude_vpp, dc.offset_v, dc.high_v, dc.low_v) == (3.0, 2.5, 4.0, 1.0)
+    flat = channel_scale(np.array([2.0, 2.0, 2.0]))
+    assert flat.amplitude_vpp > 0 and flat.offset_v == 2.0
+    with pytest.raises(ValueError, match="non-finite"):
+        channel_scale(np.array([0.0, np.nan]))
+
+
+def test_waveform_files_round_trip(tmp_path):
+    d = _design(get_panel("tn_generic"), get_panel("tn_generic_nb"))
+    written = d.write_files(tmp_path / "w")
+    assert sorted(written) == ["panel1.arb", "panel1.csv", "panel1_sdg.csv", "panel2.arb",
+                               "panel2.csv", "panel2_sdg.csv", "waveform.json"]
+    back = read_waveform_files(tmp_path / "w")
+    assert back.sample_rate_hz == FS and back.period_us == PERIOD_US
+    assert back.carrier_hz == 1000.0 and back.metadata["panels"][1]["curve"]["normally_white"] \
+        is False
+    for k in (1, 2):
+        v = d.samples(k)
+        np.testing.assert_array_equal(back.voltage_v[k - 1], v)  # %.17g: exact
+        np.testing.assert_array_equal(read_column_csv(tmp_path / "w" / f"panel{k}.csv"), v)
+        # Keysight .arb: 16-bit codes, so within half a code of the amplitude
+        arb, head = read_arb(tmp_path / "w" / f"panel{k}.arb")
+        amp = v.max() - v.min()
+        assert head["Sample Rate"] == FS and head["Data Points"] == v.size
+        assert head["High Level"] == pytest.approx(v.max(), abs=1e-8)
+        assert head["Low Level"] == pytest.approx(v.min(), abs=1e-8)
+        assert np.max(np.abs(arb - v)) <= amp / 65534 * 0.5 + 1e-8
+        assert np.max(np.abs(arb - v)) > 0  # quantised, not a copy
+        sdg, shead = read_siglent_csv(tmp_path / "w" / f"panel{k}_sdg.csv")
+        np.testing.assert_array_equal(sdg, v)
+        assert shead["data length"] == v.size
+        assert shead["frequency"] == pytest.approx(FS / v.size)  # 20 Hz: one cycle
+        assert shead["amp"] == pytest.approx(amp) and shead["offset"] == pytest.approx(
+            (v.max() + v.min()) / 2, abs=1e-9)
+    # the Keysight file starts with its header, CRLF line ends, one sample a line after Data:
+    raw = (tmp_path / "w" / "panel1.arb").read_bytes()
+    assert raw.startswith(b"Copyright:asynhdr\r\nFile Format:1.10\r\nChannel Count:1\r\n")
+    lines = raw.decode().split("\r\n")
+    assert lines[lines.index("Data:") + 1].lstrip("-").isdigit()
+    sdg_lines = (tmp_path / "w" / "panel2_sdg.csv").read_text().splitlines()
+    assert sdg_lines[0] == "data length,10000" and sdg_lines[12] == "xpos,value"
+
+
+def test_waveform_files_errors(tmp_path):
+    with pytest.raises(FileNotFoundError, match=r"waveform\.json"):
+        read_waveform_files(tmp_path)
+    d = _design(get_panel("fast_shutter"), get_panel("fast_shutter"))
+    d.write_files(tmp_path)
+    (tmp_path / "panel2.csv").write_text("1.0\n2.0\n", encoding="utf-8")
+    with pytest.raises(ValueError, match=r"panel2.csv: 2 samples, the sidecar says 10000"):
+        read_waveform_files(tmp_path)
+    bad = tmp_path / "bad.arb"
+    bad.write_text("File Format:1.10\nSample Rate:10\nHigh Level:1\nLow Level:0\n"
+                   "Data Points:3\nData:\n1\n2\n", encoding="ascii")
+    with pytest.raises(ValueError, match="Data Points:3, found 2"):
+        read_arb(bad)
+    bad.write_text("nonsense\n", encoding="ascii")
+    with pytest.raises(ValueError, match="line 1"):
+        read_arb(bad)
+    col = tmp_path / "c.csv"
+    col.write_text("1\nx\n", encoding="utf-8")
+    with pytest.raises(ValueError, match="line 2"):
+        read_column_csv(col)

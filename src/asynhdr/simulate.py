@@ -97,6 +97,8 @@ def _as_radiance(scene: Any, *, frames: bool = False) -> tuple[np.ndarray, dict[
     for attr in ("name", "unit"):
         if hasattr(scene, attr):
             info[attr] = getattr(scene, attr)
+    extra = getattr(scene, "metadata", None)
+    info["metadata"] = dict(extra) if isinstance(extra, dict) else {}
     if frames and radiance.ndim != 3:
         raise ValueError(f"a moving scene must be a 3-D (n_frames, height, width) array, got "
                          f"shape {radiance.shape}")
@@ -479,6 +481,8 @@ def simulate(
                     "delayed": stats.delayed, "dropped": stats.dropped,
                     "max_delay_us": stats.max_delay_us},
     }
+    for key, value in info["metadata"].items():  # what the scene says of itself (a CFA)
+        metadata.setdefault(key, value)
     logger.info("simulated %d events over %d cycles on %dx%d (%s engine)", events.size,
                 n_cycles, width, height, engine)
     return Recording(events=events, width=width, height=height,

@@ -37,6 +37,7 @@ from asynhdr.panel import _RANGE_TOL, Panel, _periodic_state
 from asynhdr.transmittance import Waveform
 
 __all__ = [
+    "DEFAULT_CARRIER_HZ",
     "DEFAULT_SAMPLE_RATE_HZ",
     "ChannelDesign",
     "Design",
@@ -49,6 +50,16 @@ logger = logging.getLogger(__name__)
 DEFAULT_SAMPLE_RATE_HZ = 200_000.0
 """Generator sample rate: 10,000 points per 50 ms cycle (fits a 16 k-point arbitrary
 waveform memory); 5 µs per sample, far below the panels' time constants."""
+
+
+DEFAULT_CARRIER_HZ = 1000.0
+"""Polarity-reversing square carrier of the panel drive, Hz. A DC component across a
+liquid-crystal cell moves ions to the alignment layers (image sticking, then lasting
+damage), so panels are driven by a DC-free AC voltage whose RMS sets the
+transmittance; 1 kHz is the customary drive frequency of TN test cells and shutters
+(fast against the ms-scale response, slow against the cell's RC): 50 periods per 50 ms
+cycle; at the default sample rate half a period is 100 samples. ``carrier_hz=None`` is the
+explicit DC drive."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -160,6 +171,19 @@ class Design:
             "rms_log_error_ramp": [ch.rms_log_error_ramp for ch in self.channels],
             "naive_rms_log_error_ramp": [ch.naive_rms_log_error_ramp for ch in self.channels],
         }
+
+    def write_files(self, folder: str | os.PathLike[str]) -> dict[str, Path]:
+        """Write both panels' voltages in the generators' formats and a JSON sidecar.
+
+        See :func:`asynhdr.waveform_io.write_waveform_files` (``panel{k}.csv``,
+        ``panel{k}.arb``, ``panel{k}_sdg.csv``, ``waveform.json``); read back with
+        :func:`asynhdr.waveform_io.read_waveform_files`.
+        """
+        from asynhdr.waveform_io import write_waveform_files
+
+        return write_waveform_files(folder, (self.samples(1), self.samples(2)),
+                                    sample_rate_hz=self.sample_rate_hz,
+                                    period_us=self.period_us, metadata=self.to_metadata())
 
     def to_csv(self, path: str | os.PathLike[str]) -> Path:
         """Write ``time_s,v1_v,v2_v`` (one row per sample, one cycle), atomically.
@@ -339,7 +363,7 @@ def design(
     sample_rate_hz: float,
     pre_emphasis: bool = True,
     ramp_fraction: float | None = None,
-    carrier_hz: float | None = None,
+    carrier_hz: float | None = DEFAULT_CARRIER_HZ,
 ) -> Design:
     """Commanded voltages (one cycle per panel) giving the target transmittances.
 
@@ -357,7 +381,8 @@ def design(
         (samples with phase ``n / N <= ramp_fraction``) apart from the return.
     carrier_hz : reverse the drive polarity as a square wave at this frequency (TN
         cells must be driven DC-free; the cell responds to ``V^2``, so the transmittance
-        is unchanged). None: unipolar samples.
+        is unchanged). Default :data:`DEFAULT_CARRIER_HZ`; None: unipolar (DC) samples,
+        which degrade a real cell: only for panels that are not liquid crystals.
 
     Returns
     -------

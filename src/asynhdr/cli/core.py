@@ -212,9 +212,16 @@ def demo(
 
 
 def _scene_from_spec(spec: str, width: int, height: int, scale: float | None,
-                     target: float = 316.0) -> Any:
+                     target: float = 316.0, cfa: str | None = None) -> Any:
     from asynhdr.scene import exposure_scale, flat_field, from_radiance_map, step_chart
 
+    if cfa is not None:
+        if spec == "chart" or spec.startswith("flat:"):
+            fail(f"--cfa {cfa}: a colour sensor needs an RGB image, not {spec!r}")
+        from asynhdr.cli._colour import colour_scene_from_file
+
+        return colour_scene_from_file(spec, width=width, height=height, scale=scale, cfa=cfa,
+                                      target=target)
     if spec == "chart":
         return step_chart(width=width, height=height)
     if spec.startswith("flat:"):
@@ -231,6 +238,9 @@ def _scene_from_spec(spec: str, width: int, height: int, scale: float | None,
     radiance, info = read_radiance(spec)
     if info.get("clipped_negative"):
         err_console.print(f"{spec}: {info['clipped_negative']} negative pixels clipped to 0")
+    if info.get("colour_reduced"):
+        err_console.print(f"note: {spec} is a colour image: reduced to luminance (grey "
+                          "sensor); --cfa rggb simulates a colour sensor")
     if scale is None:  # automatic exposure: the scene's log-average at the rig's middle
         scale = exposure_scale(radiance, target=target)
         err_console.print(f"{spec}: automatic exposure, x{scale:.4g} to lux (log-average at "
@@ -253,6 +263,10 @@ def simulate(
     ramp_fraction: float = typer.Option(0.9, help="Part of the cycle the ramp takes."),
     t1_shape: str = typer.Option("linear", help="Scene panel ramp: linear | exponential."),
     t2_shape: str = typer.Option("linear", help="Reference panel ramp: linear | exponential."),
+    panel: str = typer.Option("ideal", help="Panels the drive goes through: ideal (the "
+                              "target at once) | tn | fast_shutter (real LC panels)."),
+    pre_emphasis: bool = typer.Option(True, help="Design the panels' drive to invert their "
+                                      "response (with --panel tn or fast_shutter)."),
     l_const: float = typer.Option(10.0, help="Reference radiance, in the scene's unit."),
     scale: float | None = typer.Option(None, help="Multiply the scene radiance by this "
                                        "(default for HDR images: automatic exposure, the "
@@ -262,6 +276,10 @@ def simulate(
                                     "(same seed, same sensor)."),
     engine: str = typer.Option("exact", help="Simulator engine: exact | stepped."),
     dt_us: float = typer.Option(5.0, help="Step of the stepped engine (µs)."),
+    cfa: str | None = typer.Option(None, "--cfa", help="Colour sensor: a Bayer filter "
+                                   "(rggb, bggr, grbg, gbrg) over the pixels; needs an RGB "
+                                   "image. Default: grey."),
+    colour: bool = typer.Option(False, "--colour", help="Same as --cfa rggb."),
 ) -> None:
     """Simulate a scene seen through the rig and write the recording."""
     from asynhdr.io import write_recording
@@ -272,11 +290,13 @@ def simulate(
     try:
         sensor = get_preset(preset)
         rig = Rig(period_us=period_us, ramp_fraction=ramp_fraction, t1_shape=t1_shape,  # type: ignore[arg-type]
-                  t2_shape=t2_shape, l_const=l_const)  # type: ignore[arg-type]
+                  t2_shape=t2_shape, l_const=l_const, panel=panel,  # type: ignore[arg-type]
+                  pre_emphasis=pre_emphasis)
         if scale is not None and not (scale > 0 and math.isfinite(scale)):
             fail(f"--scale must be a positive number, got {scale}")
         sc = _scene_from_spec(scene, width, height, scale,
-                              target=l_const * math.sqrt(rig.contrast_ratio_1))
+                              target=l_const * math.sqrt(rig.contrast_ratio_1),
+                              cfa=cfa or ("rggb" if colour else None))
         with progress_bar() as update:
             rec = run(sc, rig=rig, sensor=sensor, n_cycles=n_cycles, rng=seed,
                       sensor_seed=sensor_seed, engine=engine, dt_us=dt_us,
@@ -341,6 +361,8 @@ def reconstruct(
     height: int | None = typer.Option(None, help="Sensor height, for files without geometry."),
     formats: str = typer.Option("exr,png", help=f"Comma-separated, from {IMAGE_FORMATS}."),
     tonemap: str = typer.Option("log", help="PNG tone mapping: log | reinhard | linear."),
+    demosaic: str = typer.Option("malvar", help="Colour recordings (a CFA in the metadata): "
+                                 "malvar | bilinear | none (write the raw mosaic)."),
 ) -> None:
     """Reconstruct one HDR image per modulation cycle.
 
@@ -355,8 +377,18 @@ def reconstruct(
                             "cmap": str(cmap) if cmap else None,
                             "radiometric": method in ("ttfe", "invert")}
 
+    from asynhdr.cli._colour import DEMOSAIC_CHOICES, write_colour
+
+    if demosaic not in DEMOSAIC_CHOICES:
+        fail(f"--demosaic: expected one of {DEMOSAIC_CHOICES}, got {demosaic!r}")
+    rec_meta: dict[str, Any] = {}
+
     def write(i: int, img: np.ndarray, unit: str) -> None:
         stem = out / f"{recording.stem}_{method}_{i:04d}"
+        if rec_meta.get("cfa") and demosaic != "none":
+            write_colour(stem, img, rec_meta, fmts, method=demosaic, tonemap=tonemap,
+                         extra=dict(meta, cycle=i, unit=unit))
+            return
         for f in fmts:
             if f == "png":
                 write_image(stem.with_suffix(".png"), img, tonemap=tonemap)
@@ -373,6 +405,7 @@ def reconstruct(
             from asynhdr.reconstruct import windows_for
 
             rec = open_recording(recording, width=width, height=height)
+            rec_meta.update(rec.metadata)
             windows = windows_for(rec, window_us=window_us, single=True)
             img = run(rec, method=method, k=k, cmap=cm, windows=windows,
                       threshold=threshold)[0]
@@ -387,11 +420,15 @@ def reconstruct(
                                     threshold=threshold, width=width, height=height,
                                     progress=lambda n: update("scan (events)", n, n))
             unit = plan.metadata.get("radiance_unit", "relative")
+            rec_meta.update(plan.metadata)
             for i, _, img in plan:
                 write(i, img, unit)
                 update("reconstruct (cycles)", i + 1, len(plan))
     except (ValueError, FileNotFoundError) as exc:
         fail(str(exc))
+    if rec_meta.get("cfa") and demosaic != "none":
+        console.print(f"colour recording (CFA {rec_meta['cfa']}): demosaiced ({demosaic}) "
+                      "to RGB")
     console.print(f"{len(plan)} image{'s' if len(plan) != 1 else ''} ({method}) from "
                   f"{plan.n_events:,} events, one cycle "
                   f"at a time -> {out}/")

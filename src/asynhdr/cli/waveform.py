@@ -14,12 +14,12 @@ from asynhdr._atomic import atomic_path
 from asynhdr.cli import app
 from asynhdr.panel import PRESETS, Panel, PanelResponse, get_panel, tn_panel
 from asynhdr.rig import Rig
-from asynhdr.waveform import DEFAULT_SAMPLE_RATE_HZ, Design, design
+from asynhdr.waveform import DEFAULT_CARRIER_HZ, DEFAULT_SAMPLE_RATE_HZ, Design, design
+from asynhdr.waveform_io import SIDECAR_NAME
 
-__all__ = ["waveform"]
+__all__ = ["build_design", "waveform"]
 
 _RIG = Rig()
-CSV_NAME = "waveform.csv"
 PNG_NAME = "waveform.png"
 
 
@@ -37,6 +37,28 @@ def _panel(preset: str, *, contrast_ratio: float | None, rise_us: float | None,
                              fall_us=base.response.fall_us if fall_us is None else fall_us)
         base = dataclasses.replace(base, response=resp)
     return base
+
+
+def build_design(*, period_us: int = _RIG.period_us,
+                 sample_rate_hz: float = DEFAULT_SAMPLE_RATE_HZ,
+                 ramp_fraction: float = _RIG.ramp_fraction, t1_shape: str = _RIG.t1_shape,
+                 t2_shape: str = _RIG.t2_shape, t2_stop: float = _RIG.t2_stop,
+                 panel1: str = "tn_generic", panel2: str = "tn_generic_nb",
+                 contrast_ratio: float | None = None, rise_us: float | None = None,
+                 fall_us: float | None = None, carrier_hz: float | None = DEFAULT_CARRIER_HZ,
+                 pre_emphasis: bool = True) -> Design:
+    """The design ``asynhdr waveform`` makes from its options (defaults: its defaults)."""
+    p1 = _panel(panel1, contrast_ratio=contrast_ratio, rise_us=rise_us, fall_us=fall_us)
+    p2 = _panel(panel2, contrast_ratio=contrast_ratio, rise_us=rise_us, fall_us=fall_us)
+    rig = Rig(period_us=period_us, ramp_fraction=ramp_fraction,
+              t1_shape=t1_shape,  # type: ignore[arg-type]
+              t2_shape=t2_shape,  # type: ignore[arg-type]
+              t2_stop=t2_stop,
+              contrast_ratio_1=p1.contrast_ratio, contrast_ratio_2=p2.contrast_ratio)
+    t1, t2 = rig.waveforms()
+    return design(t1, t2, panel1=p1, panel2=p2, period_us=period_us,
+                  sample_rate_hz=sample_rate_hz, pre_emphasis=pre_emphasis,
+                  ramp_fraction=ramp_fraction, carrier_hz=carrier_hz)
 
 
 def _plot(d: Design, path: Path) -> None:
@@ -98,30 +120,29 @@ def waveform(
     fall_us: float | None = typer.Option(
         None, help="Time constant of falling transmittance, µs, both panels "
                    "(default: preset's)."),
-    carrier_hz: float | None = typer.Option(
-        None, help="Reverse the drive polarity as a square wave at this frequency (DC-free)."),
+    carrier_hz: float = typer.Option(
+        DEFAULT_CARRIER_HZ, help="AC carrier: the drive polarity reverses as a square wave at "
+        "this frequency, DC-free, as liquid crystals need."),
+    dc: bool = typer.Option(False, "--dc", help="Drive DC (no carrier). A DC voltage "
+                            "degrades a liquid-crystal cell: only for other modulators."),
     pre_emphasis: bool = typer.Option(True, "--pre-emphasis/--no-pre-emphasis",
                                       help="Invert the panels' dynamics."),
     out: Path = typer.Option(Path("waveform"), "--out", help="Output folder."),
 ) -> None:
-    """Design both panels' voltages for the rig's target waveforms; write CSV and plot."""
+    """Design both panels' voltages for the rig's target waveforms; write one file per
+    panel in the generators' formats (plain column .csv, Keysight .arb, Siglent .csv),
+    a JSON sidecar and a plot."""
     console = Console()
     try:
-        p1 = _panel(panel1, contrast_ratio=contrast_ratio, rise_us=rise_us, fall_us=fall_us)
-        p2 = _panel(panel2, contrast_ratio=contrast_ratio, rise_us=rise_us, fall_us=fall_us)
-        rig = Rig(period_us=period_us, ramp_fraction=ramp_fraction,
-                  t1_shape=t1_shape,  # type: ignore[arg-type]
-                  t2_shape=t2_shape,  # type: ignore[arg-type]
-                  t2_stop=t2_stop,
-                  contrast_ratio_1=p1.contrast_ratio, contrast_ratio_2=p2.contrast_ratio)
-        t1, t2 = rig.waveforms()
-        d = design(t1, t2, panel1=p1, panel2=p2, period_us=period_us,
-                   sample_rate_hz=sample_rate_hz, pre_emphasis=pre_emphasis,
-                   ramp_fraction=ramp_fraction, carrier_hz=carrier_hz)
+        d = build_design(period_us=period_us, sample_rate_hz=sample_rate_hz,
+                         ramp_fraction=ramp_fraction, t1_shape=t1_shape, t2_shape=t2_shape,
+                         t2_stop=t2_stop, panel1=panel1, panel2=panel2,
+                         contrast_ratio=contrast_ratio, rise_us=rise_us, fall_us=fall_us,
+                         carrier_hz=None if dc else carrier_hz, pre_emphasis=pre_emphasis)
     except ValueError as exc:
         console.print(f"[red]error:[/red] {escape(str(exc))}")
         raise typer.Exit(code=2) from None
-    csv_path = d.to_csv(out / CSV_NAME)
+    files = d.write_files(out)
     png_path = out / PNG_NAME
     _plot(d, png_path)
 
@@ -146,4 +167,9 @@ def waveform(
             console.print(f"[yellow]note:[/yellow] panel {k} starts the cycle at "
                           f"{ch.result[0]:.4g} instead of {ch.target[0]:.4g}: the return is too "
                           "fast for it; a smaller ramp_fraction leaves it more time")
-    console.print(f"wrote {csv_path} and {png_path}")
+    drive = "DC (no carrier)" if d.carrier_hz is None else f"AC carrier {d.carrier_hz:g} Hz"
+    if d.carrier_hz is None:
+        console.print("[yellow]warning:[/yellow] DC drive: a DC voltage across a "
+                      "liquid-crystal cell degrades it")
+    console.print(f"drive: {drive}; wrote {len(files) - 1} channel files and "
+                  f"{escape(str(out / SIDECAR_NAME))}, plot {escape(str(png_path))}")

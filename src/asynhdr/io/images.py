@@ -215,7 +215,8 @@ def read_radiance(path: PathLike) -> tuple[np.ndarray, dict[str, Any]]:
         ``info`` has ``source`` (the path), ``format`` (``"exr"``, ``"hdr"``,
         ``"npy"``, ``"tiff"``), ``channels`` (those used), ``width``, ``height``,
         ``clipped_negative`` (pixels with ``Y < 0``, set to 0) and ``non_positive``
-        (pixels with ``Y <= 0`` before clipping).
+        (pixels with ``Y <= 0`` before clipping), ``colour_reduced`` (an RGB image was
+        reduced to luminance; also a log warning).
 
     Raises
     ------
@@ -231,6 +232,10 @@ def read_radiance(path: PathLike) -> tuple[np.ndarray, dict[str, Any]]:
     _require_file(p)
     data, used = _READERS[fmt](p)
     y = _to_luminance(p, data)
+    colour_reduced = data.ndim == 3
+    if colour_reduced:
+        logger.warning("%s: colour (RGB) image reduced to luminance Y = 0.2126 R + 0.7152 G + "
+                       "0.0722 B; a colour sensor (Bayer CFA) keeps the colour", p)
     n_bad = int(np.count_nonzero(~np.isfinite(y)))
     if n_bad:
         raise ValueError(
@@ -254,6 +259,7 @@ def read_radiance(path: PathLike) -> tuple[np.ndarray, dict[str, Any]]:
         "height": int(y.shape[0]),
         "clipped_negative": n_neg,
         "non_positive": n_nonpos,
+        "colour_reduced": colour_reduced,
     }
     return y, info
 
