@@ -277,16 +277,31 @@ def _first(rows, ia, ib, wa, wb, lo, hi, thr, up, v_prev):
 
 
 @nb.njit(cache=True, inline="always")
-def _advance(s, k, hi, t, h_max):
-    """Interval index containing ``t`` (``s[k] <= t``), at most ``hi``. No grid step is
-    longer than ``h_max``, so ``k + (t - s[k]) // h_max`` is never past the answer: jump
-    there, then step forward over the few shorter steps."""
-    j = k + np.int64((t - s[k]) / h_max)
-    if j > hi:
-        j = hi
-    while j < hi and s[j + 1] <= t:
-        j += 1
-    return j
+def _advance(s, k, hi, t):
+    """Interval index containing ``t`` (``s[k] <= t``), at most ``hi``: galloping forward
+    from ``k`` (the grid is dense where the waveform leaves its floor), then bisection."""
+    if k >= hi or s[k + 1] > t:
+        return k
+    a = k + 1
+    step = 1
+    while True:
+        b = a + step
+        if b >= hi:
+            b = hi
+            if s[b] <= t:
+                return hi
+            break
+        if s[b] > t:
+            break
+        a = b
+        step *= 2
+    # s[a] <= t < s[b]
+    while b - a > 1:
+        mid = (a + b) >> 1
+        le = s[mid] <= t
+        a = mid if le else a
+        b = b if le else mid
+    return a
 
 
 @nb.njit(cache=True, inline="always")
@@ -329,9 +344,6 @@ def _fire(pix, order, s, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pieces,
     n = pix.shape[0]
     pure = jit_us == 0.0 and lat_us == 0.0 and refr_us == 0.0
     draws = jit_us > 0.0 or sigma > 0.0
-    h_max = 0.0
-    for kk in range(s.shape[0] - 1):
-        h_max = max(h_max, s[kk + 1] - s[kk])
     nruns_max = 2 * pieces.shape[0] if mode == 0 else 1
     nblk = order.shape[0]
     for bi in nb.prange(nblk):
@@ -514,7 +526,7 @@ def _fire(pix, order, s, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pieces,
                 t = t_end if t_end > 0.0 else 0.0
                 r2 = _run_at(runs, nr, r, t, s)
                 if r2 == r and t >= s[k]:
-                    k = _advance(s, k, runs[r, 1] - 1, t, h_max)
+                    k = _advance(s, k, runs[r, 1] - 1, t)
                 else:
                     r = r2
                     k = _interval(s, runs[r, 0], runs[r, 1] - 1, t)
