@@ -1,9 +1,15 @@
-"""Simulation and reconstruction speed on a 1280x720 step chart.
+"""Simulation and reconstruction speed on a 1280x720 step chart, one cycle.
 
-Prints events/s (median of ``--repeats`` runs, after one warm-up run that compiles the
-kernels) for the exact engine with several presets and for the time-stepped engine,
-and the reconstruction time beside ``numpy.bincount`` over the same events, measured in
-the same run.
+Every figure is a median of ``--repeats`` runs after one warm-up run (numba compiles
+there), next to references measured in the same run over the same number of events:
+``numpy.sort`` of that many int64 timestamps and ``numpy.bincount`` of that many pixel
+indices with weights. The machine's speed drifts; compare the ratios.
+
+- the exact engine for every preset (the ideal pixel: closed-form crossings; the
+  realistic ones: the photoreceptor tabulated over radiance), with the rig's ideal panels
+  and with TN panels in the loop;
+- the stepped engine (each pixel's signal integrated) on a smaller sensor;
+- reconstruction (exp weighting) beside ``numpy.bincount``.
 """
 
 from __future__ import annotations
@@ -35,61 +41,79 @@ def _median_time(fn: Callable[[], Any], repeats: int) -> tuple[float, Any]:
     return statistics.median(times), out
 
 
+def _references(n: int, npx: int, repeats: int) -> dict[str, float]:
+    """Median seconds of numpy.sort and numpy.bincount over ``n`` items."""
+    rng = np.random.default_rng(0)
+    t = rng.integers(0, 50_000, n)
+    pix = rng.integers(0, npx, n)
+    w = rng.standard_normal(n)
+    t_sort, _ = _median_time(lambda: np.sort(t), repeats)
+    t_bin, _ = _median_time(lambda: np.bincount(pix, weights=w, minlength=npx), repeats)
+    return {"sort_seconds": t_sort, "bincount_seconds": t_bin}
+
+
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--width", type=int, default=1280)
     ap.add_argument("--height", type=int, default=720)
-    ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--stepped-width", type=int, default=320,
-                    help="sensor width for the time-stepped engine (it costs pixels x steps)")
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--stepped-width", type=int, default=160,
+                    help="sensor width for the stepped engine (it costs pixels x steps)")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args(argv)
 
     scene = step_chart(width=args.width, height=args.height)
-    rig = Rig()
+    npx = args.width * args.height
     results: dict[str, Any] = {"width": args.width, "height": args.height,
                                "repeats": args.repeats, "simulate": {}}
-    print(f"simulation, exact engine, {args.width}x{args.height} step chart, 1 cycle "
-          f"(median of {args.repeats})")
+    print(f"simulation, {args.width}x{args.height} step chart, 1 cycle, median of "
+          f"{args.repeats}; references over the same number of events in the same run")
+    print(f"  {'preset':9s} {'panel':6s} {'engine':7s} {'events':>11s} {'seconds':>8s} "
+          f"{'M ev/s':>7s} {'x sort':>7s} {'x bincount':>10s} {'distinct t':>10s}")
     rec = None
-    for preset in ("ideal", "v2e", "imx636", "davis346"):
-        def run(preset: str = preset) -> Any:
-            return simulate(scene, rig=rig, sensor=preset, n_cycles=1, rng=0)
-        dt, r = _median_time(run, args.repeats)
+    for panel in ("ideal", "tn"):
+        rig = Rig(panel=panel)
+        for preset in ("ideal", "v2e", "davis346", "imx636"):
+            def run(preset: str = preset, rig: Rig = rig) -> Any:
+                return simulate(scene, rig=rig, sensor=preset, n_cycles=1, rng=0)
+
+            dt, r = _median_time(run, args.repeats)
+            n = int(r.events.size)
+            ref = _references(n, npx, args.repeats)
+            ev = r.events
+            within = ev["t"][(ev["t"] >= 0) & (ev["t"] < rig.period_us)]
+            distinct = int(np.unique(within).size)
+            row = {"events": n, "seconds": dt, "events_per_s": n / dt,
+                   "ratio_to_sort": dt / ref["sort_seconds"],
+                   "ratio_to_bincount": dt / ref["bincount_seconds"],
+                   "distinct_timestamps_in_cycle": distinct, **ref}
+            results["simulate"][f"{preset}/{panel}"] = row
+            print(f"  {preset:9s} {panel:6s} {'exact':7s} {n:>11,d} {dt:8.3f} "
+                  f"{n / dt / 1e6:7.1f} {row['ratio_to_sort']:7.2f} "
+                  f"{row['ratio_to_bincount']:10.2f} {distinct:>10,d}")
+            if preset == "ideal" and panel == "ideal":
+                rec = r
+
+    sw = args.stepped_width
+    sh = sw * args.height // args.width
+    small = step_chart(width=sw, height=sh)
+    results["stepped"] = {}
+    for preset in ("ideal", "imx636"):
+        def run_stepped(preset: str = preset) -> Any:
+            return simulate(small, sensor=preset, n_cycles=1, rng=0, engine="stepped")
+
+        dt, r = _median_time(run_stepped, max(1, args.repeats // 2))
         n = int(r.events.size)
-        results["simulate"][preset] = {"events": n, "seconds": dt, "events_per_s": n / dt}
-        print(f"  {preset:9s} {n:>11,d} events  {dt:7.3f} s  {n / dt / 1e6:7.1f} M events/s")
-        if preset == "ideal":
-            rec = r
-
-    try:
-        from asynhdr.sensor.stepped import simulate_stepped  # noqa: F401
-        has_stepped = True
-    except ImportError:
-        has_stepped = False
-    if has_stepped:
-        sw = args.stepped_width
-        sh = sw * args.height // args.width
-        small = step_chart(width=sw, height=sh)
-
-        def run_stepped() -> Any:
-            return simulate(small, rig=rig, sensor="ideal", n_cycles=1, rng=0,
-                            engine="stepped", dt_us=5.0)
-
-        dt, r = _median_time(run_stepped, args.repeats)
-        n = int(r.events.size)
-        steps = rig.period_us / 5.0 * sw * sh
-        results["stepped"] = {"width": sw, "height": sh, "events": n, "seconds": dt,
-                              "events_per_s": n / dt, "pixel_steps_per_s": steps / dt}
-        print(f"  stepped   {n:>11,d} events  {dt:7.3f} s  {n / dt / 1e6:7.1f} M events/s "
-              f"({sw}x{sh}, dt 5 µs: {steps / dt / 1e6:.0f} M pixel-steps/s)")
+        results["stepped"][preset] = {"width": sw, "height": sh, "events": n, "seconds": dt,
+                                      "events_per_s": n / dt, "pixels_per_s": sw * sh / dt}
+        print(f"  {preset:9s} {'ideal':6s} {'stepped':7s} {n:>11,d} {dt:8.3f} "
+              f"{n / dt / 1e6:7.1f}   ({sw}x{sh}: {sw * sh / dt / 1e3:.0f} k pixel-cycles/s)")
 
     assert rec is not None
     ev = rec.events
     windows = windows_for(rec)
     pix = ev["y"].astype(np.int64) * rec.width + ev["x"]
     pol = ev["p"].astype(np.float64)
-    npx = rec.width * rec.height
 
     def floor() -> Any:
         return np.bincount(pix, weights=pol, minlength=npx)

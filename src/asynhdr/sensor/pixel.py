@@ -190,18 +190,6 @@ def _val(rows, ia, ib, wa, wb, k):
 
 
 @nb.njit(cache=True, inline="always")
-def _interval(s, lo, hi, t):
-    """Largest ``k`` in ``[lo, hi]`` with ``s[k] <= t`` (``s[lo] <= t`` assumed)."""
-    while lo < hi:
-        mid = (lo + hi + 1) >> 1
-        if s[mid] <= t:
-            lo = mid
-        else:
-            hi = mid - 1
-    return lo
-
-
-@nb.njit(cache=True, inline="always")
 def _reaches(e, thr, up):
     return (e >= thr) if up else (e <= thr)
 
@@ -277,31 +265,23 @@ def _first(rows, ia, ib, wa, wb, lo, hi, thr, up, v_prev):
 
 
 @nb.njit(cache=True, inline="always")
-def _advance(s, k, hi, t):
-    """Interval index containing ``t`` (``s[k] <= t``), at most ``hi``: galloping forward
-    from ``k`` (the grid is dense where the waveform leaves its floor), then bisection."""
-    if k >= hi or s[k + 1] > t:
-        return k
-    a = k + 1
-    step = 1
-    while True:
-        b = a + step
-        if b >= hi:
-            b = hi
-            if s[b] <= t:
-                return hi
-            break
-        if s[b] > t:
-            break
-        a = b
-        step *= 2
-    # s[a] <= t < s[b]
-    while b - a > 1:
-        mid = (a + b) >> 1
-        le = s[mid] <= t
-        a = mid if le else a
-        b = b if le else mid
-    return a
+def _locate(s, idx, lo, hi, t):
+    """Interval index ``k`` in ``[lo, hi]`` with ``s[k] <= t < s[k + 1]`` (``s[lo] <= t``):
+    ``idx[m]`` is the last grid point at or before ``m`` µs, so the answer is a few steps
+    on from ``idx[floor(t)]``."""
+    m = np.int64(t)
+    if m < 0:
+        m = 0
+    elif m >= idx.shape[0]:
+        m = idx.shape[0] - 1
+    j = idx[m]
+    if j < lo:
+        j = lo
+    elif j > hi:
+        j = hi
+    while j < hi and s[j + 1] <= t:
+        j += 1
+    return j
 
 
 @nb.njit(cache=True, inline="always")
@@ -328,7 +308,7 @@ def _at(rows, ia, ib, wa, wb, s, k, t):
 
 
 @nb.njit(cache=True, parallel=True)
-def _fire(pix, order, s, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pieces, run_key,
+def _fire(pix, order, s, idx, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pieces, run_key,
           run_off, run_tab, c_on, c_off, ref, ready, pending, pending_z, alive, nz_off, nz_t,
           nz_pol, seed, cycle, sigma, refr_us, lat_us, jit_us, period_us, offsets, slot_t,
           slot_p, counts, overflow, n_lost, t_lo, nbins, block):
@@ -385,7 +365,7 @@ def _fire(pix, order, s, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pieces,
                 n_lost[i] = lost
                 continue
             r = _run_at(runs, nr, 0, t, s)
-            k = _interval(s, runs[r, 0], runs[r, 1] - 1, t)
+            k = _locate(s, idx, runs[r, 0], runs[r, 1] - 1, t)
             v = _at(rows, ra, rb, xa, xb, s, k, t)
             if pend:
                 r_lvl = (v if log_domain else math.log(v)) + sigma * pz
@@ -506,7 +486,7 @@ def _fire(pix, order, s, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pieces,
                     else:
                         t = tn
                         r = _run_at(runs, nr, r, t, s)
-                        k = _interval(s, runs[r, 0], runs[r, 1] - 1, t)
+                        k = _locate(s, idx, runs[r, 0], runs[r, 1] - 1, t)
                         v = _at(rows, ra, rb, xa, xb, s, k, t)
                         r_lvl = (v if log_domain else math.log(v)) + sigma * zr
                         if log_domain:
@@ -524,12 +504,8 @@ def _fire(pix, order, s, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pieces,
                     pz = zr
                     break
                 t = t_end if t_end > 0.0 else 0.0
-                r2 = _run_at(runs, nr, r, t, s)
-                if r2 == r and t >= s[k]:
-                    k = _advance(s, k, runs[r, 1] - 1, t)
-                else:
-                    r = r2
-                    k = _interval(s, runs[r, 0], runs[r, 1] - 1, t)
+                r = _run_at(runs, nr, r, t, s)
+                k = _locate(s, idx, runs[r, 0], runs[r, 1] - 1, t)
                 v = _at(rows, ra, rb, xa, xb, s, k, t)
                 r_lvl = (v if log_domain else math.log(v)) + sigma * zr
                 if log_domain:
@@ -647,6 +623,8 @@ def fire_cycle(
     ro = run_off if run_off is not None else np.zeros(2, dtype=np.int64)
     rt = run_tab if run_tab is not None else np.zeros((1, 3), dtype=np.int64)
     order = _block_order(n, _BLOCK)
+    idx = (np.searchsorted(s, np.arange(math.ceil(float(s[-1])) + 1, dtype=np.float64),
+                           side="right") - 1).astype(np.int64)
     bound = np.empty(n, dtype=np.int64)
     c_scale = 1.0
     saved = state.copy()
@@ -662,7 +640,7 @@ def fire_cycle(
         counts = np.empty(n, dtype=np.int64)
         overflow = np.zeros(n, dtype=np.int8)
         lost = np.empty(n, dtype=np.int64)
-        _fire(pix, order, s, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pcs, rk, ro, rt,
+        _fire(pix, order, s, idx, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pcs, rk, ro, rt,
               c_on, c_off, state.ref, state.ready, state.pending, state.pending_z, alive,
               noise_off, noise_t, noise_pol, np.uint64(seed), np.int64(cycle),
               float(reset_noise_sigma), float(refractory_us), float(latency_us),
