@@ -269,11 +269,8 @@ def _locate(s, idx, lo, hi, t):
     """Interval index ``k`` in ``[lo, hi]`` with ``s[k] <= t < s[k + 1]`` (``s[lo] <= t``):
     ``idx[m]`` is the last grid point at or before ``m`` µs, so the answer is a few steps
     on from ``idx[floor(t)]``."""
-    m = np.int64(t)
-    if m < 0:
-        m = 0
-    elif m >= idx.shape[0]:
-        m = idx.shape[0] - 1
+    m = int(t)
+    m = min(max(m, 0), idx.shape[0] - 1)
     j = idx[m]
     if j < lo:
         j = lo
