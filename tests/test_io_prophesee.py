@@ -805,7 +805,7 @@ def test_header_past_the_limit_is_refused(tmp_path: Path, monkeypatch: pytest.Mo
 def test_missing_file_or_folder(tmp_path: Path) -> None:
     with pytest.raises(FileNotFoundError, match=r"missing\.raw"):
         pr.read_raw(tmp_path / "missing.raw")
-    with pytest.raises(ValueError, match="cannot open"):
+    with pytest.raises(ValueError, match="is a folder"):
         pr.raw_info(tmp_path)
 
 

@@ -42,7 +42,8 @@ def test_paper_formula_by_hand(method, f) -> None:
     rec = _rec(ev)
     win = CycleWindows(np.array([0, 1000]), 900.0)
     c, lc = 0.17, 3.0
-    img = reconstruct(rec, method=method, windows=win, threshold=c, l_const=lc)
+    img = reconstruct(rec, method=method, windows=win, threshold_on=c, threshold_off=c,
+                      l_const=lc)
     assert img.shape == (2, 1, 2)
     s00 = f(100 / 900) + f(250 / 900) - f(600 / 900)
     assert img[0, 0, 0] == pytest.approx(lc * math.exp(c * s00), rel=1e-6)
@@ -65,7 +66,7 @@ def test_cmap_scales_the_threshold_per_pixel() -> None:
     rec = _rec(ev)
     win = CycleWindows(np.array([0]), 1000.0)
     cm = np.array([[0.5, 2.0]], dtype=np.float32)
-    img = reconstruct(rec, method="raw", windows=win, cmap=cm, threshold=0.2, l_const=1.0)
+    img = reconstruct(rec, method="raw", windows=win, cmap=cm, threshold_on=0.2, l_const=1.0)
     assert img[0, 0, 0] == pytest.approx(math.exp(0.2 * 0.5 * 2))
     assert img[0, 0, 1] == pytest.approx(math.exp(0.2 * 2.0 * 1))
 

@@ -49,9 +49,10 @@ import numpy as np
 
 from asynhdr.events import EVENT_DTYPE, TRIGGER_DTYPE, Recording, empty_triggers
 from asynhdr.io import _aedat_decode as _own
-from asynhdr.io import _pair_triggers, _require_file
+from asynhdr.io._common import Format, Header, ReadOptions, check_geometry, require_file
+from asynhdr.source import pair_triggers, rechunk
 
-__all__ = ["EXTERNAL_TRIGGER_TYPES", "aedat_info", "iter_aedat", "read_aedat"]
+__all__ = ["EXTERNAL_TRIGGER_TYPES", "FORMAT", "aedat_info", "iter_aedat", "read_aedat"]
 
 logger = logging.getLogger(__name__)
 
@@ -170,11 +171,8 @@ class _Source:
     """One file's facts, geometry, triggers and event packets."""
 
     def __init__(self, p: Path):
-        try:
-            c = _own.open_container(p)
-        except OSError:
-            _require_file(p)  # a missing file or a folder gets its own message
-            raise
+        require_file(p)  # a missing file, a folder, a FIFO: named, never opened
+        c = _own.open_container(p)
         ev = c.stream_of_type("EVTS")
         self.facts = {"camera": "" if ev is None or ev.source is None else ev.source,
                       "streams": [s.name for s in c.streams.values()]}
@@ -227,7 +225,7 @@ def aedat_info(path: str | os.PathLike[str]) -> dict[str, Any]:
     """Header facts of an AEDAT 4.0 file: ``camera``, ``width``, ``height``, ``streams``,
     ``trigger_records`` (every trigger record by type) and the external ``triggers``
     count, without decoding the events."""
-    p = _require_file(path)
+    p = require_file(path)
     src = _Source(p)
     tr, counts = src.triggers()
     info = _metadata(p, src.facts, counts)
@@ -246,15 +244,12 @@ def iter_aedat(
     """
     if chunk_events is not None and int(chunk_events) < 1:
         raise ValueError(f"iter_aedat: chunk_events must be >= 1, got {chunk_events}")
-    p = _require_file(path)
+    p = require_file(path)
     return _iter(p, chunk_events)
 
 
 def _check_resolution(p: Path, width: int, height: int) -> tuple[int, int]:
-    if not (0 < width <= 65536 and 0 < height <= 65536):
-        raise ValueError(f"{p}: the event stream's resolution {width}x{height} "
-                         "is not a sensor's")
-    return width, height
+    return check_geometry(str(p), width, height, "the event stream's resolution")
 
 
 def _packets(src: _Source) -> Iterator[np.ndarray]:
@@ -275,11 +270,9 @@ def _packets(src: _Source) -> Iterator[np.ndarray]:
 def _iter(p: Path, chunk_events: int | None) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     src = _Source(p)
     triggers, _ = src.triggers()
-    paired = _pair_triggers(_packets(src), triggers)
+    paired = pair_triggers(_packets(src), triggers)
     if chunk_events is not None:
-        from asynhdr.io import _rechunk
-
-        yield from _rechunk(paired, chunk_events=int(chunk_events))
+        yield from rechunk(paired, chunk_events=int(chunk_events))
         return
     yield from paired
 
@@ -367,3 +360,25 @@ def read_aedat(path: str | os.PathLike[str]) -> Recording:
     # _convert_dv checked every pixel and wrote every polarity as +-1.
     return Recording.from_checked(events=events, width=width, height=height,
                                   triggers=triggers, metadata=meta)
+
+
+def _header(path: Path, opts: ReadOptions) -> Header:
+    src = _Source(path)
+    tr, counts = src.triggers()
+    meta = _metadata(path, src.facts, counts)
+    facts = dict(meta, width=src.width, height=src.height, triggers=int(tr.size))
+    return Header(format="aedat4", width=src.width, height=src.height,
+                  geometry_source="the event stream's resolution", metadata=meta,
+                  facts=facts, sensor=str(src.facts["camera"]) or None, triggers=tr)
+
+
+FORMAT = Format(
+    name="aedat4",
+    extensions=(".aedat4",),
+    description="iniVation AEDAT 4.0 (DV): uncompressed, LZ4 or Zstd",
+    sniff=lambda path, head: head.startswith(b"#!AER-DAT4.0"),
+    header=_header,
+    chunks=lambda path, header, n, opts: iter_aedat(path, chunk_events=n),
+    read=lambda path, header, opts: read_aedat(path),
+)
+"""The ``.aedat4`` record of the format registry (:mod:`asynhdr.io`)."""
