@@ -774,7 +774,7 @@ def find_cycles(
     name = src.name
     tr = src.triggers
     rising = tr[tr["rising"]] if tr.size else tr
-    notes: list[str] = []
+    notes: list[str] = [] if rising.size else ["no trigger edges"]
     rig = _rig_cycles(src.metadata)
     cyc: Cycles | None = None
     if rising.size:
@@ -786,7 +786,7 @@ def find_cycles(
         except ValueError as exc:
             notes.append(f"trigger edges not usable ({exc})")
     if cyc is None and rig is not None:
-        cyc = rig
+        cyc, notes = rig, []
     scan = src.scan(progress=progress)
     if cyc is None:
         if scan.events == 0:
@@ -818,7 +818,7 @@ def find_cycles(
         if conf < min_confidence or cover < MIN_COVERAGE:
             raise NoCyclesError(
                 name, "; ".join([*notes, (
-                    f"no triggers, and no modulation in the event rate (best guess: period "
+                    f"no modulation in the event rate (best guess: period "
                     f"{cyc.period_us:.1f} µs, confidence {conf:.2f}: burst regularity "
                     f"{cyc.confidence:.2f} x pixel coverage {cover:.2f}; needed: confidence "
                     f">= {min_confidence:g} and coverage >= {MIN_COVERAGE:g})")]),

@@ -18,7 +18,7 @@ from typing import Any, NoReturn
 import numpy as np
 import typer
 from rich.console import Console
-from rich.progress import BarColumn, TextColumn, TimeElapsedColumn
+from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn
 from rich.progress import Progress as RichProgress
 from rich.table import Table
 
@@ -75,8 +75,8 @@ def fail(msg: str) -> NoReturn:
 def progress_bar() -> Iterator[Progress]:
     """A rich progress bar driven by the library's progress protocol
     ``update(stage, done, total)`` (``total`` None: not known)."""
-    with RichProgress(TextColumn("{task.description:<22}"), BarColumn(),
-                      TextColumn("{task.completed:,}/{task.total}"), TimeElapsedColumn(),
+    with RichProgress(TextColumn("{task.description:<22}"), BarColumn(), MofNCompleteColumn(),
+                      TimeElapsedColumn(),
                       console=err_console, transient=False) as prog:
         tasks: dict[str, Any] = {}
 

@@ -1524,8 +1524,7 @@ def _sniff(path: Path, head: bytes) -> bool:
 FORMAT = Format(
     name="raw",
     extensions=(".raw",),
-    description="Prophesee RAW, EVT 2.0 / 2.1 / 3.0 (Metavision, OpenEB); writes EVT 3.0 "
-                "(or EVT 2.0: evt='2.0')",
+    description="Prophesee RAW, EVT 2.0 / 2.1 / 3.0 (Metavision, OpenEB)",
     sniff=_sniff,
     header=_header,
     chunks=_chunks,
