@@ -641,7 +641,8 @@ def test_evt3_round_trip_edges_ties_gaps_and_triggers(tmp_path: Path) -> None:
     assert (back.width, back.height) == (width, height)
     text = path.read_bytes()[:200]
     assert text.startswith(
-        b"% evt 3.0\n% format EVT3;height=720;width=1280\n% geometry 1280x720\n% end\n"
+        b"% evt 3.0\n% format EVT3;height=720;width=1280\n% geometry 1280x720\n"
+        b"% asynhdr_metadata {}\n% end\n"
     )
     # an independent decoder reads the same stream
     theirs, their_triggers = _faery_decode(path)

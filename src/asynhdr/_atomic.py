@@ -86,7 +86,7 @@ def check_output(path: str | os.PathLike[str], *, overwrite: bool) -> Path:
     if target.exists() or target.is_symlink():
         if not overwrite:
             raise FileExistsError(f"{target}: exists; not replaced (overwrite it explicitly)")
-        if not os.access(target, os.W_OK):
+        if not os.stat(target).st_mode & 0o222 or not os.access(target, os.W_OK):
             raise PermissionError(f"{target}: exists and is read-only; not replaced")
     folder = next((p for p in [target.parent, *target.parent.parents] if p.exists()), None)
     if folder is not None and not os.access(folder, os.W_OK | os.X_OK):

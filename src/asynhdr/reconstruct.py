@@ -103,9 +103,9 @@ DEFAULT_METHOD = "exp"
 DEFAULT_K = 10.0
 """The exponential weighting's ``k`` (the paper chose 10)."""
 
-LOG_FLOAT32_MAX = 88.72
-"""``ln`` of (just under) the largest float32, 3.4e38: the highest log radiance an image
-holds."""
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+LOG_FLOAT32_MAX = math.log(FLOAT32_MAX)
+"""``ln`` of the largest float32 (3.4e38): the highest log radiance an image holds."""
 
 WEIGHTINGS: dict[str, int] = {"raw": 0, "linear": 1, "quadratic": 2, "poly5": 3, "exp": 4}
 """The paper's temporal weightings, name -> kernel code."""
@@ -388,8 +388,8 @@ def _from_level(level: np.ndarray, l_const: float) -> np.ndarray:
             "up to %.0f > %.2f: hundreds more ON than OFF events, a hot pixel or a window "
             "longer than a ramp); set to the largest float32 (3.4e38)",
             int(over.sum()), float(log_img.max()), LOG_FLOAT32_MAX)
-        log_img = np.minimum(log_img, LOG_FLOAT32_MAX)
-    return np.exp(log_img).astype(np.float32)
+        log_img = np.minimum(log_img, 89.0)  # exp(89) > FLT_MAX: saturates below
+    return np.minimum(np.exp(log_img), FLOAT32_MAX).astype(np.float32)
 
 
 def _paper(method: str) -> Callable[[Recording, CycleWindows, _Params], np.ndarray]:

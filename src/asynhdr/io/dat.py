@@ -189,7 +189,8 @@ def read_dat(
     dec, info, geo = _decoder(p, width, height)
     parts = list(_packets(p, dec))
     events = np.concatenate(parts) if len(parts) > 1 else (parts[0] if parts else empty_events())
-    meta: dict[str, Any] = _stored_metadata(p, info["header"]) or {
+    stored = _stored_metadata(p, info["header"])
+    meta: dict[str, Any] = stored if stored is not None else {
         "format": "dat", "source": str(p), "dat_version": info["version"],
         "header": info["header"]}
     if geo is None:
@@ -306,9 +307,10 @@ def _header(path: Path, opts: ReadOptions) -> Header:
                          "asynhdr reads CD .dat files only")
     geo = resolve_geometry(str(path), info["dimensions"], opts.width, opts.height,
                            source="header")
-    meta = _stored_metadata(path, info["header"]) or {
-        "format": "dat", "source": str(path), "dat_version": info["version"],
-        "header": info["header"]}
+    meta = _stored_metadata(path, info["header"])
+    if meta is None:
+        meta = {"format": "dat", "source": str(path), "dat_version": info["version"],
+                "header": info["header"]}
     return Header(format="dat", width=geo[0] if geo else None, height=geo[1] if geo else None,
                   geometry_source=geo[2] if geo else None, metadata=meta, facts=info,
                   triggers=empty_triggers(), events=info["events"])

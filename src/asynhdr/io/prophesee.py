@@ -444,7 +444,8 @@ class _RawInfo:
         payload = self.file_bytes - self.header_bytes
         self.n_words = payload // self.word_bytes
         self.trailing_bytes = payload - self.n_words * self.word_bytes
-        self.metadata: dict[str, Any] = _stored_metadata(self.fields, self.name) or {
+        stored = _stored_metadata(self.fields, self.name)
+        self.metadata: dict[str, Any] = stored if stored is not None else {
             "format": self.format, "source": self.name, "header": dict(self.fields)}
 
     def as_dict(self) -> dict[str, Any]:
@@ -1349,7 +1350,7 @@ class RawWriter:
         self._encode: Any = encode
         _check_geometry(self.width, self.height, str(path), "the writer's arguments")
         extra = dict(header_extra or {})
-        if metadata:
+        if metadata is not None:
             try:
                 extra[METADATA_KEY] = json.dumps(metadata, allow_nan=True)
             except (TypeError, ValueError) as exc:
