@@ -67,9 +67,6 @@ FORMATS: tuple[Format, ...] = (
 )
 """Every format asynhdr reads (and most it writes), one record each."""
 
-_WRITE_DEFAULT = {".h5": "hdf5", ".hdf5": "metavision-hdf5"}
-"""Which record writes an extension that several records read."""
-
 SUPPORTED_FORMATS: dict[str, str] = {
     ext: " / ".join(f.description for f in FORMATS if ext in f.extensions)
     for ext in dict.fromkeys(e for f in FORMATS for e in f.extensions)
@@ -92,16 +89,16 @@ def _head(p: Path) -> bytes:
 
 
 def format_for(path: str | os.PathLike[str], *, writing: bool = False) -> Format:
-    """The format record for ``path``: by extension (case-insensitive) and, for an
-    existing file being read, by its content. ``ValueError`` listing
-    :data:`SUPPORTED_FORMATS` when none fits."""
+    """The format record for ``path``: by extension (case-insensitive) and, for a file
+    being read, by its content (``.h5`` and ``.hdf5`` by their layout); for writing, the
+    record whose first extension it is (``.h5``: asynhdr's HDF5, ``.hdf5``: Metavision's).
+    ``ValueError`` listing :data:`SUPPORTED_FORMATS` when none fits."""
     p = Path(path)
     ext = p.suffix.lower()
     candidates = [f for f in FORMATS if ext in f.extensions]
-    if writing:
-        name = _WRITE_DEFAULT.get(ext)
-        for f in candidates:
-            if f.writer is not None and (name is None or f.name == name):
+    if writing:  # the record whose first extension it is, else any that writes it
+        for f in sorted(candidates, key=lambda f: f.extensions[0] != ext):
+            if f.writer is not None:
                 return f
         raise ValueError(f"{p}: cannot write {ext or 'files without extension'!r}; writable: "
                          + ", ".join(WRITABLE_FORMATS))
@@ -117,11 +114,6 @@ def format_for(path: str | os.PathLike[str], *, writing: bool = False) -> Format
         raise ValueError(f"{p}: unknown extension {ext or '(none)'!r}"
                          + (f"; its content {what}" if seen else "") + f"; {_supported_text()}")
     raise ValueError(f"{p}: not a {SUPPORTED_FORMATS[ext]} file ({what}); {_supported_text()}")
-
-
-def format_of(path: str | os.PathLike[str]) -> str:
-    """The name of the format record :func:`format_for` picks for ``path``."""
-    return format_for(path).name
 
 
 class FileSource(Source):
