@@ -73,9 +73,9 @@ def check_output(path: str | os.PathLike[str], *, overwrite: bool) -> Path:
     made (no file stands where a folder is needed), it is not a folder, and it does not
     exist unless ``overwrite`` (even then a read-only file is not replaced).
 
-    Raises ``FileExistsError`` (exists, ``overwrite`` False), ``PermissionError``
-    (read-only, or a folder that cannot be written) or ``ValueError`` (a folder, or a
-    file in the way), each naming the path."""
+    Raises ``FileExistsError`` (exists, ``overwrite`` False) or ``ValueError`` (a
+    read-only file, a folder that cannot be written, a folder where a file is wanted, or
+    a file in the way of a folder), each naming the path."""
     target = Path(path)
     for parent in reversed(target.parents):
         if parent.exists() and not parent.is_dir():
@@ -87,10 +87,10 @@ def check_output(path: str | os.PathLike[str], *, overwrite: bool) -> Path:
         if not overwrite:
             raise FileExistsError(f"{target}: exists; not replaced (overwrite it explicitly)")
         if not os.stat(target).st_mode & 0o222 or not os.access(target, os.W_OK):
-            raise PermissionError(f"{target}: exists and is read-only; not replaced")
+            raise ValueError(f"{target}: exists and is read-only; not replaced")
     folder = next((p for p in [target.parent, *target.parent.parents] if p.exists()), None)
     if folder is not None and not os.access(folder, os.W_OK | os.X_OK):
-        raise PermissionError(f"{target}: the folder {folder} cannot be written")
+        raise ValueError(f"{target}: the folder {folder} cannot be written")
     return target
 
 

@@ -98,7 +98,7 @@ def check_outputs(paths: list[Path], *, overwrite: bool) -> None:
             check_output(p, overwrite=overwrite)
         except FileExistsError:
             fail(f"{p}: exists; pass --overwrite to replace it")
-        except (PermissionError, ValueError) as exc:
+        except ValueError as exc:
             fail(str(exc))
 
 
