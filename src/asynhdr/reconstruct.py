@@ -80,6 +80,7 @@ __all__ = [
     "DEFAULT_K",
     "DEFAULT_METHOD",
     "METHODS",
+    "RELATIVE_L_CONST",
     "WEIGHTINGS",
     "CycleImages",
     "CycleWindows",
@@ -102,6 +103,10 @@ DEFAULT_METHOD = "exp"
 
 DEFAULT_K = 10.0
 """The exponential weighting's ``k`` (the paper chose 10)."""
+
+RELATIVE_L_CONST = 1.0
+"""``L_const`` when the recording has no rig: images are then relative to the reference
+radiance (the unit the metadata's ``radiance_unit`` says, ``"relative"`` by default)."""
 
 FLOAT32_MAX = float(np.finfo(np.float32).max)
 LOG_FLOAT32_MAX = math.log(FLOAT32_MAX)
@@ -582,7 +587,8 @@ def _params(
     for nm, v in (("threshold_on", c_on), ("threshold_off", c_off)):
         if not (v > 0 and math.isfinite(v)):
             raise ValueError(f"{nm} must be positive, got {v}")
-    lc = (rig.l_const if rig is not None else 1.0) if l_const is None else float(l_const)
+    lc = (rig.l_const if rig is not None else RELATIVE_L_CONST) if l_const is None \
+        else float(l_const)
     if not (lc > 0 and math.isfinite(lc)):
         raise ValueError(f"l_const must be positive, got {lc}")
     cm: np.ndarray | None
@@ -625,7 +631,7 @@ def reconstruct(
     windows : integration windows (default: :func:`windows_for`).
     threshold_on, threshold_off : the nominal contrast thresholds (default: the
         recording's sensor, see :func:`thresholds_of`).
-    l_const : the reference radiance (default: the rig's, else 1).
+    l_const : the reference radiance (default: the rig's, else :data:`RELATIVE_L_CONST`).
 
     Returns
     -------

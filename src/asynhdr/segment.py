@@ -824,6 +824,8 @@ def find_cycles(
                     f">= {min_confidence:g} and coverage >= {MIN_COVERAGE:g})")]),
                 period_given=period_us is not None)
         cyc = replace(cyc, confidence=conf)
+        if rising.size:
+            logger.warning("%s: %s; cycles from the event rate instead", name, "; ".join(notes))
     if scan.events and len(cyc) and (int(scan.min_t_us)  # type: ignore[arg-type]
                                      >= int(cyc.start_us[0]) - 0.1 * cyc.period_us):
         cyc = replace(cyc, warmup=1)
