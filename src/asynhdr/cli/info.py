@@ -157,7 +157,8 @@ def info(
                 how = _HOW[cycles.source]
             except NoCyclesError as exc:
                 cycles = None
-                how = as_flags(f"{exc.reason}; pass --period-us or --single")
+                hint = "--single" if period_us is not None else "--period-us or --single"
+                how = as_flags(f"{exc.reason}; pass {hint}")
         if plot is not None:
             save_rate_plot(plot, str(file), src.scan(), cycles)
     except (FileNotFoundError, ValueError) as exc:
