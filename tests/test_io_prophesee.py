@@ -852,7 +852,7 @@ def test_writer_rejects_bad_input_and_leaves_no_file(tmp_path: Path) -> None:
         pr.Evt3Writer(path, width=8, height=8, header_extra={"bad key": 1})
     with pytest.raises(ValueError, match="written by the writer"):
         pr.Evt3Writer(path, width=8, height=8, header_extra={"geometry": "1x1"})
-    with pytest.raises(ValueError, match="outside its 'with' block"):
+    with pytest.raises(ValueError, match=r"not open \(use it in a with block\)"):
         pr.Evt3Writer(path, width=8, height=8).write(_ev([(1, 1, 1, 1)]))
     assert not path.exists()
     unsorted_rec = Recording(unsorted, 8, 8)

@@ -3,6 +3,8 @@ at the boundary (regular files only, geometry caps, time range, integer fields).
 
 from __future__ import annotations
 
+import contextlib
+import json
 import os
 import stat
 from collections.abc import Callable, Iterator
@@ -13,12 +15,14 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from asynhdr._atomic import atomic_path
 from asynhdr.events import Recording
 
 __all__ = [
     "KNOWN_SENSORS",
     "MAX_ABS_TIME_US",
     "MAX_SIDE_PX",
+    "FileWriter",
     "Format",
     "Header",
     "ReadOptions",
@@ -26,6 +30,7 @@ __all__ = [
     "check_geometry",
     "check_times",
     "int_field",
+    "json_metadata",
     "recording",
     "require_file",
     "resolve_geometry",
@@ -84,6 +89,51 @@ class Header:
     triggers: np.ndarray | None = None
     events: int | None = None
     private: Any = None
+
+
+class FileWriter:
+    """Base of the streaming writers: a context manager that writes ``path`` under a
+    temporary name (:func:`asynhdr._atomic.atomic_path`) and renames it when the ``with``
+    block ends without an exception. Subclasses open the file (:meth:`_open`, binary by
+    default), write its head (:meth:`_start`) and implement ``write(events, triggers)``,
+    which :meth:`_file` guards."""
+
+    def __init__(self, path: str | os.PathLike[str], *, overwrite: bool = True) -> None:
+        self.path = Path(path)
+        self._overwrite = overwrite
+        self._stack: contextlib.ExitStack | None = None
+        self._f: Any = None
+
+    def _open(self, tmp: Path) -> Any:
+        return open(tmp, "wb")
+
+    def _start(self, f: Any) -> None:
+        """Write what comes before the first batch."""
+
+    def __enter__(self) -> Any:
+        stack = contextlib.ExitStack()
+        try:
+            tmp = stack.enter_context(atomic_path(self.path, overwrite=self._overwrite))
+            self._f = stack.enter_context(self._open(tmp))
+            self._start(self._f)
+        except BaseException:
+            stack.close()
+            self._f = None
+            raise
+        self._stack = stack
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        stack, self._stack, self._f = self._stack, None, None
+        if stack is not None:
+            stack.__exit__(exc_type, exc, tb)
+
+    def _file(self) -> Any:
+        """The open file; ``ValueError`` outside the ``with`` block."""
+        if self._f is None:
+            raise ValueError(f"{self.path}: the writer is not open (use it in a with block)")
+        return self._f
 
 
 class Writer(Protocol):
@@ -234,6 +284,16 @@ def int_field(name: str, field: str, values: Any, dtype: Any) -> np.ndarray:
                 f"of {dt} ({info.min}..{info.max})"
             )
     return a.astype(dt, copy=False)
+
+
+def json_metadata(name: str, metadata: dict[str, Any] | None, *, allow_nan: bool = True
+                  ) -> str:
+    """``metadata`` as one line of JSON (``{}`` for None); ``ValueError`` naming the file
+    when it is not JSON-serialisable."""
+    try:
+        return json.dumps(metadata or {}, allow_nan=allow_nan)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name}: metadata is not JSON-serialisable: {exc}") from exc
 
 
 def recording(name: str, **kwargs: Any) -> Recording:

@@ -38,7 +38,6 @@ scan the events again.
 
 from __future__ import annotations
 
-import contextlib
 import html
 import json
 import logging
@@ -46,13 +45,11 @@ import os
 import struct
 from collections.abc import Iterator
 from pathlib import Path
-from types import TracebackType
 from typing import Any, BinaryIO
 
 import numba
 import numpy as np
 
-from asynhdr._atomic import atomic_path
 from asynhdr.events import (
     EVENT_DTYPE,
     TRIGGER_DTYPE,
@@ -62,7 +59,15 @@ from asynhdr.events import (
     validate_triggers,
 )
 from asynhdr.io import _aedat_decode as _own
-from asynhdr.io._common import Format, Header, ReadOptions, check_geometry, require_file
+from asynhdr.io._common import (
+    FileWriter,
+    Format,
+    Header,
+    ReadOptions,
+    check_geometry,
+    json_metadata,
+    require_file,
+)
 from asynhdr.source import pair_triggers, rechunk
 
 __all__ = ["EXTERNAL_TRIGGER_TYPES", "FORMAT", "AedatWriter", "aedat_info", "iter_aedat",
@@ -445,7 +450,7 @@ def _packet(sid: int, ident: bytes, body: bytes) -> bytes:
     return struct.pack("<ii", sid, len(fb)) + fb
 
 
-class AedatWriter:
+class AedatWriter(FileWriter):
     """An AEDAT 4.0 file (uncompressed packets, no file data table) with an event stream
     and a trigger stream, atomically; dv-processing and faery read it. Edges on channel 0
     become EXTERNAL_SIGNAL edges, on channel 1 EXTERNAL_GENERATOR edges (the two kinds
@@ -455,36 +460,19 @@ class AedatWriter:
     def __init__(self, path: str | os.PathLike[str], *, width: int, height: int,
                  metadata: dict[str, Any] | None = None, camera: str = "asynhdr",
                  overwrite: bool = True) -> None:
-        self.path = Path(path)
+        super().__init__(path, overwrite=overwrite)
         self.width, self.height = check_geometry(str(path), width, height,
                                                  "the writer's arguments")
-        try:
-            meta = json.dumps(metadata or {}, allow_nan=True)
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"{path}: metadata is not JSON-serialisable: {exc}") from exc
-        xml = _xml(self.width, self.height, camera, meta)
-        self._head = b"#!AER-DAT4.0\r\n" + struct.pack("<i", len(_io_header(xml))) + \
-            _io_header(xml)
-        self._overwrite = overwrite
-        self._stack: contextlib.ExitStack | None = None
-        self._f: BinaryIO | None = None
+        head = _io_header(_xml(self.width, self.height, camera,
+                               json_metadata(str(path), metadata)))
+        self._head = b"#!AER-DAT4.0\r\n" + struct.pack("<i", len(head)) + head
 
-    def __enter__(self) -> AedatWriter:
-        stack = contextlib.ExitStack()
-        try:
-            tmp = stack.enter_context(atomic_path(self.path, overwrite=self._overwrite))
-            self._f = stack.enter_context(open(tmp, "wb"))
-            self._f.write(self._head)
-        except BaseException:
-            stack.close()
-            raise
-        self._stack = stack
-        return self
+    def _start(self, f: BinaryIO) -> None:
+        f.write(self._head)
 
     def write(self, events: np.ndarray, triggers: np.ndarray | None = None) -> None:
         """Append events (``EVENT_DTYPE``, sorted by time) and triggers (channels 0, 1)."""
-        if self._f is None:
-            raise ValueError(f"{self.path}: the writer is not open (use it in a with block)")
+        f = self._file()
         validate_events(events, width=self.width, height=self.height, require_sorted=True,
                         name=f"{self.path}: events")
         for a in range(0, events.size, _PACKET_EVENTS):
@@ -492,7 +480,7 @@ class AedatWriter:
             rec = np.zeros(ev.size, dtype=_own.DV_EVENT_DTYPE)
             rec["timestamp"], rec["x"], rec["y"] = ev["t"], ev["x"], ev["y"]
             rec["polarity"] = ev["p"] > 0
-            self._f.write(_packet(0, b"EVTS", struct.pack("<I", ev.size) + rec.tobytes()))
+            f.write(_packet(0, b"EVTS", struct.pack("<I", ev.size) + rec.tobytes()))
         if triggers is not None and triggers.size:
             validate_triggers(triggers, name=f"{self.path}: triggers")
             bad = triggers["id"] > 1
@@ -508,14 +496,8 @@ class AedatWriter:
                             _AEDAT_TYPES[(bool(r), int(i))], int(t))
                 for t, r, i in zip(triggers["t"], triggers["rising"], triggers["id"],
                                    strict=True))
-            self._f.write(_packet(1, b"TRIG", struct.pack(f"<I{m}I", m, *offsets)
-                                  + b"\0" * pad + tables))
-
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
-        stack, self._stack, self._f = self._stack, None, None
-        if stack is not None:
-            stack.__exit__(exc_type, exc, tb)
+            f.write(_packet(1, b"TRIG", struct.pack(f"<I{m}I", m, *offsets) + b"\0" * pad
+                            + tables))
 
 
 FORMAT = Format(

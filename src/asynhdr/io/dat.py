@@ -17,7 +17,6 @@ with the recording's metadata on a ``% asynhdr_metadata`` header line.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
 import os
@@ -28,7 +27,6 @@ from typing import Any, BinaryIO
 
 import numpy as np
 
-from asynhdr._atomic import atomic_path
 from asynhdr.events import (
     EVENT_DTYPE,
     Recording,
@@ -38,10 +36,12 @@ from asynhdr.events import (
     validate_triggers,
 )
 from asynhdr.io._common import (
+    FileWriter,
     Format,
     Header,
     ReadOptions,
     check_geometry,
+    json_metadata,
     recording,
     require_file,
     resolve_geometry,
@@ -226,7 +226,7 @@ def _stored_metadata(p: Path, header: dict[str, str]) -> dict[str, Any] | None:
     return meta
 
 
-class DatWriter:
+class DatWriter(FileWriter):
     """CD events as a Prophesee DAT 2 file, atomically: ``%`` header lines (``Version 2``,
     ``Width``, ``Height``, the metadata as JSON on ``% asynhdr_metadata``), the event type
     (12, CD) and size (8), then per event ``uint32 t`` (µs) and ``uint32 x | y << 14 |
@@ -235,38 +235,22 @@ class DatWriter:
 
     def __init__(self, path: str | os.PathLike[str], *, width: int, height: int,
                  metadata: dict[str, Any] | None = None, overwrite: bool = True) -> None:
-        self.path = Path(path)
+        super().__init__(path, overwrite=overwrite)
         self.width, self.height = check_geometry(str(path), width, height,
                                                  "the writer's arguments")
-        try:
-            meta = json.dumps(metadata or {}, allow_nan=True)
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"{path}: metadata is not JSON-serialisable: {exc}") from exc
+        meta = json_metadata(str(path), metadata)
         self._head = (f"% Data file containing CD events.\n% Version 2\n"
                       f"% Width {self.width}\n% Height {self.height}\n"
                       f"% {METADATA_KEY} {meta}\n").encode("ascii") + bytes([12, 8])
-        self._overwrite = overwrite
-        self._stack: contextlib.ExitStack | None = None
-        self._f: BinaryIO | None = None
         self._last_t = 0
         self.triggers_left_out = 0
 
-    def __enter__(self) -> DatWriter:
-        stack = contextlib.ExitStack()
-        try:
-            tmp = stack.enter_context(atomic_path(self.path, overwrite=self._overwrite))
-            self._f = stack.enter_context(open(tmp, "wb"))
-            self._f.write(self._head)
-        except BaseException:
-            stack.close()
-            raise
-        self._stack = stack
-        return self
+    def _start(self, f: BinaryIO) -> None:
+        f.write(self._head)
 
     def write(self, events: np.ndarray, triggers: np.ndarray | None = None) -> None:
         """Append time-sorted events (triggers are counted and left out)."""
-        if self._f is None:
-            raise ValueError(f"{self.path}: the writer is not open (use it in a with block)")
+        f = self._file()
         validate_events(events, width=self.width, height=self.height, require_sorted=True,
                         name=f"{self.path}: events")
         if triggers is not None and triggers.size:
@@ -284,13 +268,11 @@ class DatWriter:
         rec[:, 0] = t
         rec[:, 1] = (events["x"].astype(np.uint32) | (events["y"].astype(np.uint32) << 14)
                      | ((events["p"] > 0).astype(np.uint32) << 28))
-        self._f.write(rec.data)
+        f.write(rec.data)
 
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
                  tb: TracebackType | None) -> None:
-        stack, self._stack, self._f = self._stack, None, None
-        if stack is not None:
-            stack.__exit__(exc_type, exc, tb)
+        super().__exit__(exc_type, exc, tb)
         if exc_type is None and self.triggers_left_out:
             logger.warning("%s: %d trigger edges left out: a CD .dat file holds no triggers",
                            self.path, self.triggers_left_out)

@@ -34,7 +34,6 @@ from typing import Any
 import h5py
 import numpy as np
 
-from asynhdr._atomic import atomic_path
 from asynhdr.events import (
     Recording,
     empty_triggers,
@@ -44,11 +43,13 @@ from asynhdr.events import (
     validate_triggers,
 )
 from asynhdr.io._common import (
+    FileWriter,
     Format,
     Header,
     ReadOptions,
     check_geometry,
     int_field,
+    json_metadata,
     recording,
     require_file,
     resolve_geometry,
@@ -111,7 +112,7 @@ def _ensure_plugins() -> None:
         import hdf5plugin  # noqa: F401
 
 
-class Hdf5Writer:
+class Hdf5Writer(FileWriter):
     """Write events (and triggers) to an HDF5 file in pieces, atomically.
 
     The file is written under a temporary name beside ``path`` and renamed when the
@@ -141,51 +142,38 @@ class Hdf5Writer:
         codec: str = "blosc",
         overwrite: bool = True,
     ) -> None:
-        self.path = Path(path)
+        super().__init__(path, overwrite=overwrite)
         self.width, self.height = check_geometry(str(path), width, height,
                                                  "the writer's arguments")
-        self._overwrite = overwrite
-        try:
-            self._meta = json.dumps(metadata or {})
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"{path}: metadata is not JSON-serialisable: {exc}") from exc
+        self._meta = json_metadata(str(path), metadata)
         self._opts = _compression(codec)
-        self._stack: contextlib.ExitStack | None = None
-        self._file: h5py.File | None = None
         self.n_events = 0
         self.n_triggers = 0
         self._last_trigger_t: int | None = None
 
-    def __enter__(self) -> Hdf5Writer:
-        stack = contextlib.ExitStack()
-        tmp = stack.enter_context(atomic_path(self.path, overwrite=self._overwrite))
-        try:
-            f = h5py.File(tmp, "w")
-            f.attrs["width"] = np.int64(self.width)
-            f.attrs["height"] = np.int64(self.height)
-            f.attrs["time_unit"] = "us"
-            f.attrs["metadata"] = self._meta
-            f.attrs["format_version"] = np.int64(HDF5_FORMAT_VERSION)
-            for group, fields in (("events", _EVENT_FIELDS), ("triggers", _TRIGGER_FIELDS)):
-                g = f.create_group(group)
-                for key, dt in fields:
-                    g.create_dataset(key, shape=(0,), maxshape=(None,), dtype=dt,
-                                     chunks=(CHUNK_ELEMENTS,), **self._opts)
-        except BaseException as exc:
-            stack.__exit__(type(exc), exc, exc.__traceback__)
-            raise
-        self._stack, self._file = stack, f
-        return self
+    def _open(self, tmp: Path) -> h5py.File:
+        return h5py.File(tmp, "w")
+
+    def _start(self, f: h5py.File) -> None:
+        f.attrs["width"] = np.int64(self.width)
+        f.attrs["height"] = np.int64(self.height)
+        f.attrs["time_unit"] = "us"
+        f.attrs["metadata"] = self._meta
+        f.attrs["format_version"] = np.int64(HDF5_FORMAT_VERSION)
+        for group, fields in (("events", _EVENT_FIELDS), ("triggers", _TRIGGER_FIELDS)):
+            g = f.create_group(group)
+            for key, dt in fields:
+                g.create_dataset(key, shape=(0,), maxshape=(None,), dtype=dt,
+                                 chunks=(CHUNK_ELEMENTS,), **self._opts)
 
     def write(self, events: np.ndarray, triggers: np.ndarray | None = None) -> None:
         """Append events (``EVENT_DTYPE``, file order kept) and triggers (sorted, after
         the ones already written)."""
-        if self._file is None:
-            raise ValueError(f"{self.path}: the writer is not open (use it in a with block)")
+        f = self._file()
         validate_events(events, width=self.width, height=self.height, require_sorted=False)
         if events.size:
             n0, n1 = self.n_events, self.n_events + events.size
-            g = self._file["events"]
+            g = f["events"]
             for key, _ in _EVENT_FIELDS:
                 g[key].resize((n1,))
                 g[key][n0:n1] = events[key]
@@ -198,25 +186,16 @@ class Hdf5Writer:
                     f"last one written ({self._last_trigger_t} µs); triggers must be sorted"
                 )
             m0, m1 = self.n_triggers, self.n_triggers + triggers.size
-            g = self._file["triggers"]
+            g = f["triggers"]
             for key, _ in _TRIGGER_FIELDS:
                 g[key].resize((m1,))
                 g[key][m0:m1] = triggers[key]
             self.n_triggers = m1
             self._last_trigger_t = int(triggers["t"][-1])
 
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        f, stack = self._file, self._stack
-        self._file, self._stack = None, None
-        if f is not None:
-            f.close()
-        if stack is not None:
-            stack.__exit__(exc_type, exc, tb)
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        super().__exit__(exc_type, exc, tb)
         if exc_type is None:
             logger.info("%s: wrote %d events, %d triggers", self.path, self.n_events,
                         self.n_triggers)

@@ -22,19 +22,16 @@ attribute ``asynhdr_metadata``, which other readers ignore.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
 import os
 from collections.abc import Iterator
 from pathlib import Path
-from types import TracebackType
 from typing import Any
 
 import h5py
 import numpy as np
 
-from asynhdr._atomic import atomic_path
 from asynhdr.events import (
     EVENT_DTYPE,
     TRIGGER_DTYPE,
@@ -42,11 +39,13 @@ from asynhdr.events import (
     validate_triggers,
 )
 from asynhdr.io._common import (
+    FileWriter,
     Format,
     Header,
     ReadOptions,
     check_geometry,
     int_field,
+    json_metadata,
     require_file,
     resolve_geometry,
 )
@@ -275,7 +274,7 @@ class _Indexed:
         self.ix[m:] = idx
 
 
-class MetavisionWriter:
+class MetavisionWriter(FileWriter):
     """Write events and triggers in Metavision's HDF5 layout (see the module), atomically.
 
     Batches must be sorted by time and follow each other in time (the indexes point at
@@ -287,45 +286,33 @@ class MetavisionWriter:
     def __init__(self, path: str | os.PathLike[str], *, width: int, height: int,
                  metadata: dict[str, Any] | None = None, codec: str = "auto",
                  attributes: dict[str, str] | None = None, overwrite: bool = True) -> None:
-        self.path = Path(path)
+        super().__init__(path, overwrite=overwrite)
         self.width, self.height = check_geometry(str(path), width, height,
                                                  "the writer's arguments")
-        try:
-            self._meta = json.dumps(metadata or {}, allow_nan=True)
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"{path}: metadata is not JSON-serialisable: {exc}") from exc
+        self._meta = json_metadata(str(path), metadata)
         self._opts = _codec(str(path), codec)
         self._attrs = dict(attributes or {})
-        self._overwrite = overwrite
-        self._stack: contextlib.ExitStack | None = None
-        self._file: h5py.File | None = None
         self._cd: _Indexed | None = None
         self._tr: _Indexed | None = None
         self._last_t: int | None = None
 
-    def __enter__(self) -> MetavisionWriter:
-        stack = contextlib.ExitStack()
-        tmp = stack.enter_context(atomic_path(self.path, overwrite=self._overwrite))
-        try:
-            f = stack.enter_context(h5py.File(tmp, "w"))
-            for k, v in {"version": "1.0", "geometry": f"{self.width}x{self.height}",
-                         "format": "ECF" if self._opts.get("compression") == ECF_FILTER_ID
-                         else "HDF5", **self._attrs}.items():
-                f.attrs[k] = str(v)
-            f.attrs[METADATA_ATTR] = self._meta
-            self._cd = _Indexed(f.create_group("CD", track_order=True), CD_DTYPE, self._opts)
-            self._tr = _Indexed(f.create_group("EXT_TRIGGER", track_order=True),
-                                TRIGGER_RECORD_DTYPE, {})
-        except BaseException as exc:
-            stack.__exit__(type(exc), exc, exc.__traceback__)
-            raise
-        self._stack, self._file = stack, f
-        return self
+    def _open(self, tmp: Path) -> h5py.File:
+        return h5py.File(tmp, "w")
+
+    def _start(self, f: h5py.File) -> None:
+        ecf = self._opts.get("compression") == ECF_FILTER_ID
+        for k, v in {"version": "1.0", "geometry": f"{self.width}x{self.height}",
+                     "format": "ECF" if ecf else "HDF5", **self._attrs}.items():
+            f.attrs[k] = str(v)
+        f.attrs[METADATA_ATTR] = self._meta
+        self._cd = _Indexed(f.create_group("CD", track_order=True), CD_DTYPE, self._opts)
+        self._tr = _Indexed(f.create_group("EXT_TRIGGER", track_order=True),
+                            TRIGGER_RECORD_DTYPE, {})
 
     def write(self, events: np.ndarray, triggers: np.ndarray | None = None) -> None:
         """Append a time-sorted batch of events and triggers."""
-        if self._cd is None or self._tr is None:
-            raise ValueError(f"{self.path}: the writer is not open (use it in a with block)")
+        self._file()
+        assert self._cd is not None and self._tr is not None
         name = str(self.path)
         validate_events(events, width=self.width, height=self.height, require_sorted=True,
                         name=f"{name}: events")
@@ -343,12 +330,6 @@ class MetavisionWriter:
             tr = np.zeros(triggers.size, dtype=TRIGGER_RECORD_DTYPE)
             tr["p"], tr["t"], tr["id"] = triggers["rising"], triggers["t"], triggers["id"]
             self._tr.append(tr)
-
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
-        stack, self._stack, self._file, self._cd, self._tr = self._stack, None, None, None, None
-        if stack is not None:
-            stack.__exit__(exc_type, exc, tb)
 
 
 FORMAT = Format(

@@ -48,6 +48,7 @@ from asynhdr.io._common import (
     ReadOptions,
     check_geometry,
     int_field,
+    json_metadata,
     require_file,
 )
 from asynhdr.io._common import recording as _recording
@@ -85,10 +86,7 @@ class NpzWriter:
         self.path = Path(path)
         self.width, self.height = check_geometry(str(path), width, height,
                                                  "the writer's arguments")
-        try:
-            self._meta = json.dumps(metadata or {}, allow_nan=True)
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"{path}: metadata is not JSON-serialisable: {exc}") from exc
+        self._meta = json_metadata(str(path), metadata)
         self._overwrite = overwrite
         self._dir: Path | None = None
         self._files: dict[str, Any] = {}

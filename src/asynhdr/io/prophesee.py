@@ -44,7 +44,6 @@ read up to the cut, with a warning.
 
 from __future__ import annotations
 
-import contextlib
 import itertools
 import json
 import logging
@@ -53,13 +52,11 @@ import threading
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from types import TracebackType
 from typing import Any, BinaryIO
 
 import numpy as np
 
 from asynhdr import _pool
-from asynhdr._atomic import atomic_path
 from asynhdr._recycle import Recycler
 from asynhdr.events import (
     EVENT_DTYPE,
@@ -70,7 +67,14 @@ from asynhdr.events import (
     validate_triggers,
 )
 from asynhdr.io import _evt_kernels as _k
-from asynhdr.io._common import Format, Header, ReadOptions, require_file
+from asynhdr.io._common import (
+    FileWriter,
+    Format,
+    Header,
+    ReadOptions,
+    json_metadata,
+    require_file,
+)
 
 __all__ = [
     "FORMAT",
@@ -1298,7 +1302,7 @@ _WRITERS = {"3.0": ("evt3", "EVT3", _k.encode_evt3, _k.ENCODER_STATE_SIZE, np.ui
             "2.0": ("evt2", "EVT2", _k.encode_evt2, _k.ENCODER2_STATE_SIZE, np.uint32, 31)}
 
 
-class RawWriter:
+class RawWriter(FileWriter):
     """Stream events and triggers into an EVT 3.0 (default) or EVT 2.0 ``.raw`` file,
     atomically.
 
@@ -1342,7 +1346,7 @@ class RawWriter:
     ) -> None:
         if evt not in _WRITERS:
             raise ValueError(f"{path}: evt must be one of {sorted(_WRITERS)}, got {evt!r}")
-        self.path = Path(path)
+        super().__init__(path, overwrite=overwrite)
         self.width = int(width)
         self.height = int(height)
         self.evt = evt
@@ -1351,14 +1355,8 @@ class RawWriter:
         _check_geometry(self.width, self.height, str(path), "the writer's arguments")
         extra = dict(header_extra or {})
         if metadata is not None:
-            try:
-                extra[METADATA_KEY] = json.dumps(metadata, allow_nan=True)
-            except (TypeError, ValueError) as exc:
-                raise ValueError(f"{path}: metadata is not JSON-serialisable: {exc}") from exc
+            extra[METADATA_KEY] = json_metadata(str(path), metadata)
         self._header = self._make_header(extra, header_extra or {})
-        self._overwrite = overwrite
-        self._stack: contextlib.ExitStack | None = None
-        self._file: BinaryIO | None = None
         self._state = np.zeros(state_size, dtype=np.int64)
         if evt == "3.0":
             self._state[_k.E_Y] = -1
@@ -1392,28 +1390,9 @@ class RawWriter:
         lines.append("% end")
         return ("\n".join(lines) + "\n").encode("utf-8")
 
-    def __enter__(self) -> RawWriter:
-        stack = contextlib.ExitStack()
-        try:
-            tmp = stack.enter_context(atomic_path(self.path, overwrite=self._overwrite))
-            self._file = stack.enter_context(open(tmp, "wb"))
-            self._file.write(self._header)
-            self.bytes_written = len(self._header)
-        except BaseException:
-            stack.close()
-            raise
-        self._stack = stack
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        stack, self._stack, self._file = self._stack, None, None
-        if stack is not None:
-            stack.__exit__(exc_type, exc, tb)
+    def _start(self, f: BinaryIO) -> None:
+        f.write(self._header)
+        self.bytes_written = len(self._header)
 
     def write(self, events: np.ndarray, triggers: np.ndarray | None = None) -> None:
         """Append a batch of events (``EVENT_DTYPE``) and triggers (``TRIGGER_DTYPE``).
@@ -1422,8 +1401,7 @@ class RawWriter:
         ``[0, 2**34)`` µs, trigger channels 0..15 (EVT 3.0) or 0..31 (EVT 2.0), and no
         earlier than the last time already written.
         """
-        if self._file is None:
-            raise ValueError(f"{self.path}: RawWriter.write called outside its 'with' block")
+        out = self._file()
         name = str(self.path)
         events = validate_events(
             events, width=self.width, height=self.height, require_sorted=True,
@@ -1463,7 +1441,7 @@ class RawWriter:
             else:
                 res = self._encode(events, triggers, i, j, self._state, self._buf)
             status, i, j, n = (int(v) for v in res)
-            self._file.write(self._buf[:n].data)
+            out.write(self._buf[:n].data)
             self.bytes_written += self._buf.itemsize * n
             if status == _k.STATUS_DONE:
                 break

@@ -23,7 +23,6 @@ Errors are ``ValueError`` naming the file, the line number and the field.
 
 from __future__ import annotations
 
-import contextlib
 import itertools
 import json
 import logging
@@ -36,7 +35,6 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from asynhdr._atomic import atomic_path
 from asynhdr.events import (
     EVENT_DTYPE,
     Recording,
@@ -48,10 +46,12 @@ from asynhdr.events import (
 )
 from asynhdr.io._common import (
     MAX_SIDE_PX,
+    FileWriter,
     Format,
     Header,
     ReadOptions,
     check_geometry,
+    json_metadata,
     recording,
     require_file,
     resolve_geometry,
@@ -497,7 +497,7 @@ def read_text(
                       metadata=meta)
 
 
-class TextWriter:
+class TextWriter(FileWriter):
     """Stream a recording into a text file, atomically: comment lines with the geometry
     and the metadata (JSON), a header line ``t x y p``, then one event a line (``t`` in
     integer µs, ``p`` 1 ON / 0 OFF) and, among them, a ``# trigger: t rising id`` line
@@ -506,47 +506,33 @@ class TextWriter:
     def __init__(self, path: str | os.PathLike[str], *, width: int, height: int,
                  metadata: dict[str, Any] | None = None, delimiter: str | None = None,
                  header: bool = True, overwrite: bool = True) -> None:
-        self.path = Path(path)
+        super().__init__(path, overwrite=overwrite)
         d = delimiter if delimiter is not None else (
             "," if self.path.suffix.lower() == ".csv" else " ")
         if d not in (" ", ",", "\t"):
             raise ValueError(f"{path}: delimiter must be ' ', ',' or a tab, got {d!r}")
         self.width, self.height = check_geometry(str(path), width, height,
                                                  "the writer's arguments")
-        try:
-            self._meta = json.dumps(metadata or {})
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"{path}: metadata is not JSON-serialisable: {exc}") from exc
+        self._meta = json_metadata(str(path), metadata)
         self._d = d
         self._header = header
-        self._overwrite = overwrite
-        self._stack: contextlib.ExitStack | None = None
-        self._f: TextIO | None = None
         self.events_written = 0
 
-    def __enter__(self) -> TextWriter:
-        stack = contextlib.ExitStack()
-        try:
-            tmp = stack.enter_context(atomic_path(self.path, overwrite=self._overwrite))
-            f = stack.enter_context(open(tmp, "w", encoding="utf-8", newline="\n"))
-            f.write("# asynhdr events: t x y p, one a line; t in µs, p 1 = ON, 0 = OFF\n")
-            f.write(f"# width: {self.width}\n# height: {self.height}\n")
-            f.write(f"# metadata: {self._meta}\n")
-            if self._header:
-                f.write(self._d.join(_FIELDS) + "\n")
-        except BaseException:
-            stack.close()
-            raise
-        self._stack, self._f = stack, f
-        return self
+    def _open(self, tmp: Path) -> TextIO:
+        return open(tmp, "w", encoding="utf-8", newline="\n")
+
+    def _start(self, f: TextIO) -> None:
+        f.write("# asynhdr events: t x y p, one a line; t in µs, p 1 = ON, 0 = OFF\n")
+        f.write(f"# width: {self.width}\n# height: {self.height}\n")
+        f.write(f"# metadata: {self._meta}\n")
+        if self._header:
+            f.write(self._d.join(_FIELDS) + "\n")
 
     def write(self, events: np.ndarray, triggers: np.ndarray | None = None) -> None:
         """Append events (``EVENT_DTYPE``, file order) and triggers."""
-        if self._f is None:
-            raise ValueError(f"{self.path}: the writer is not open (use it in a with block)")
+        f, d = self._file(), self._d
         validate_events(events, width=self.width, height=self.height, require_sorted=False,
                         name=f"{self.path}: events")
-        f, d = self._f, self._d
         if triggers is not None and triggers.size:
             validate_triggers(triggers, name=f"{self.path}: triggers")
             for t, r, i in zip(triggers["t"].tolist(), triggers["rising"].tolist(),
@@ -562,9 +548,7 @@ class TextWriter:
 
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
                  tb: TracebackType | None) -> None:
-        stack, self._stack, self._f = self._stack, None, None
-        if stack is not None:
-            stack.__exit__(exc_type, exc, tb)
+        super().__exit__(exc_type, exc, tb)
         if exc_type is None:
             logger.info("%s: wrote %d events as text", self.path, self.events_written)
 
