@@ -50,6 +50,12 @@ def test_paper_formula_by_hand(method, f) -> None:
     assert img[0, 0, 1] == pytest.approx(lc, rel=1e-6)  # no events: L_const
     assert img[1, 0, 1] == pytest.approx(lc * math.exp(c * f(100 / 900)), rel=1e-6)
     assert img[1, 0, 0] == pytest.approx(lc, rel=1e-6)
+    # ON events weigh c_on, OFF events c_off
+    c_on, c_off = 0.134, 0.203
+    img = reconstruct(rec, method=method, windows=win, threshold_on=c_on, threshold_off=c_off,
+                      l_const=lc)
+    level = c_on * (f(100 / 900) + f(250 / 900)) - c_off * f(600 / 900)
+    assert img[0, 0, 0] == pytest.approx(lc * math.exp(level), rel=1e-6)
 
 
 def test_weightings_decrease_and_start_at_one() -> None:

@@ -34,8 +34,8 @@ from asynhdr.reconstruct import (
     METHODS,
     WEIGHTINGS,
     CycleWindows,
-    polarity_sums,
     thresholds_of,
+    weighted_sums,
     windows_for,
 )
 from asynhdr.source import Progress, Source, as_source
@@ -138,8 +138,7 @@ def estimate_cmap(
         n_cycles += win.n_cycles
         n_caps += 1
         for m in methods:
-            s = polarity_sums(rec, win, method=m, k=k)
-            sums[m] += (c[0] * s[0] - c[1] * s[1]).sum(axis=0)
+            sums[m] += weighted_sums(rec, win, method=m, k=k, c_on=c[0], c_off=c[1]).sum(axis=0)
         if progress is not None:
             progress("calibrate", n_caps, total)
     if shape is None or c is None:

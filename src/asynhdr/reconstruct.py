@@ -52,7 +52,7 @@ thresholds when given. Pixels with no usable event are 0.
 
 Methods are records (:class:`Method` in :data:`METHODS`): a new method is one function
 and one entry. Per-pixel sums are one pass over the time-sorted events (numba),
-scatter-adding into ``(n_cycles, 2, height * width)`` (ON and OFF apart).
+scatter-adding ``f(u) c_on`` or ``-f(u) c_off`` into ``(n_cycles, height * width)``.
 
 Everything here takes a :class:`~asynhdr.source.Source` (or a Recording) and never
 opens a file: :func:`reconstruct` works on a whole recording in memory,
@@ -86,7 +86,6 @@ __all__ = [
     "CycleWindows",
     "Method",
     "first_on_phase",
-    "polarity_sums",
     "reconstruct",
     "reconstruct_cycles",
     "rig_of",
@@ -165,10 +164,10 @@ class CycleWindows:
 
 
 @nb.njit(cache=True, parallel=True)
-def _sums_kernel(x, y, p, t, starts, window_us, width, table, on_only, lo, hi, c0, row0,
+def _sums_kernel(x, y, p, t, starts, window_us, width, table, w_on, w_off, lo, hi, c0, row0,
                  acc, bad):
-    """Scatter-add ``table[t - start]`` per cycle, polarity and pixel (events sorted by
-    time): ON events into ``acc[r, 0]``, OFF events into ``acc[r, 1]``.
+    """Scatter-add ``table[t - start] * w`` per cycle and pixel (events sorted by time),
+    ``w = w_on`` for an ON event and ``-w_off`` for an OFF event.
 
     Events ``lo[k] .. hi[k]`` form part ``k``, summed in parallel into its own rows of
     ``acc`` (row ``row0[k] + cycle - c0[k]``), so no two threads add to one place.
@@ -193,16 +192,13 @@ def _sums_kernel(x, y, p, t, starts, window_us, width, table, on_only, lo, hi, c
             dt = ti - starts[c]
             if dt < 0 or dt >= n_tab or dt >= window_us:
                 continue
-            pol = p[i]
-            if on_only and pol < 0:
-                continue
             j = np.int64(y[i]) * width + x[i]
             r = row0[k] + c - c0[k]
-            acc[r, 0 if pol > 0 else 1, j] += table[dt]
+            acc[r, j] += table[dt] * (w_on if p[i] > 0 else -w_off)
 
 
 def _scatter_sums(ev: np.ndarray, windows: CycleWindows, width: int, npx: int,
-                  table: np.ndarray, on_only: bool) -> tuple[np.ndarray, bool]:
+                  table: np.ndarray, w_on: float, w_off: float) -> tuple[np.ndarray, bool]:
     """Run ``_sums_kernel`` over ``ev`` in parts; ``(sums, sorted)``."""
     n = int(ev.size)
     starts = windows.start_us
@@ -217,15 +213,15 @@ def _scatter_sums(ev: np.ndarray, windows: CycleWindows, width: int, npx: int,
     c1 = np.maximum(c1, c0)
     rows = c1 - c0 + 1
     row0 = np.concatenate(([0], np.cumsum(rows)[:-1])).astype(np.int64)
-    acc = np.zeros((int(rows.sum()), 2, npx), dtype=np.float64)
+    acc = np.zeros((int(rows.sum()), npx), dtype=np.float64)
     bad = np.empty(parts, dtype=np.int64)
     _sums_kernel(ev["x"], ev["y"], ev["p"], t, starts, float(windows.window_us), width,
-                 table, on_only, lo, hi, c0, row0, acc, bad)
+                 table, float(w_on), float(w_off), lo, hi, c0, row0, acc, bad)
     if (bad >= 0).any():
         return acc, False
     if parts == 1 and rows[0] == windows.n_cycles and c0[0] == 0:
         return acc, True
-    out = np.zeros((windows.n_cycles, 2, npx), dtype=np.float64)
+    out = np.zeros((windows.n_cycles, npx), dtype=np.float64)
     for k in range(parts):
         out[c0[k]:c1[k] + 1] += acc[row0[k]:row0[k] + rows[k]]
     return out, True
@@ -238,17 +234,21 @@ def _sorted_events(rec: Recording) -> np.ndarray:
     return ev
 
 
-def polarity_sums(
+def weighted_sums(
     rec: Recording,
     windows: CycleWindows,
     *,
     method: str = DEFAULT_METHOD,
     k: float = DEFAULT_K,
+    c_on: float = 1.0,
+    c_off: float = 1.0,
 ) -> np.ndarray:
-    """``S_on = sum_ON f(u_i)`` and ``S_off = sum_OFF f(u_i)`` per cycle and pixel,
-    float64 ``(2, n_cycles, height, width)`` (ON first).
+    """``S = sum_i f(u_i) c_i p_i`` per cycle and pixel, float64 ``(n_cycles, height,
+    width)``, with ``c_i = c_on`` for an ON event and ``c_off`` for an OFF event (by
+    default 1: the paper's weighted sum; the nominal thresholds: the level ``c_on S_on -
+    c_off S_off`` that Eq. 14 exponentiates).
 
-    ``method`` is a weighting name, or ``"count"`` (ON events counted, ``S_off = 0``).
+    ``method`` is a weighting name, or ``"count"`` (ON events counted, times ``c_on``).
     Times are whole µs, so ``f`` is tabulated once over the window's offsets and each
     event costs one look-up and one add; parts of the stream are summed on separate
     threads. Unsorted events are sorted stably first (and reported).
@@ -259,25 +259,13 @@ def polarity_sums(
     n_tab = math.ceil(windows.window_us)
     table = (np.ones(n_tab) if method == "count"
              else weight(method, np.arange(n_tab) / windows.window_us, k=k))
+    w_off = 0.0 if method == "count" else c_off
     npx = rec.height * rec.width
-    out, ok = _scatter_sums(rec.events, windows, rec.width, npx, table, method == "count")
+    out, ok = _scatter_sums(rec.events, windows, rec.width, npx, table, c_on, w_off)
     if not ok:
-        out, ok = _scatter_sums(_sorted_events(rec), windows, rec.width, npx, table,
-                                method == "count")
-    return out.transpose(1, 0, 2).reshape(2, windows.n_cycles, rec.height, rec.width)
-
-
-def weighted_sums(
-    rec: Recording,
-    windows: CycleWindows,
-    *,
-    method: str = DEFAULT_METHOD,
-    k: float = DEFAULT_K,
-) -> np.ndarray:
-    """``S = sum_i f(u_i) p_i = S_on - S_off`` per cycle and pixel, float64
-    ``(n_cycles, height, width)``; see :func:`polarity_sums`."""
-    s = polarity_sums(rec, windows, method=method, k=k)
-    return s[0] - s[1]
+        out, ok = _scatter_sums(_sorted_events(rec), windows, rec.width, npx, table, c_on,
+                                w_off)
+    return out.reshape(windows.n_cycles, rec.height, rec.width)
 
 
 @nb.njit(cache=True)
@@ -372,43 +360,56 @@ def _invert_kernel(x, y, p, t, starts, window_us, period_us, width, c_on, c_off,
 
 @dataclass(frozen=True)
 class _Params:
-    """What every method gets besides the events: per-pixel ON and OFF thresholds (the
-    c-map applied), ``L_const``, the rig (or None), ``k``."""
+    """What every method gets besides the events: the nominal ON and OFF thresholds, the
+    c-map's per-pixel ``gain`` on both (None without a c-map), ``L_const``, the rig (or
+    None), ``k``."""
 
     k: float
-    c_on: np.ndarray
-    c_off: np.ndarray
+    c_on: float
+    c_off: float
+    gain: np.ndarray | None
     l_const: float
     rig: Rig | None
+
+    def with_gain(self, a: np.ndarray) -> np.ndarray:
+        """``a`` (``(..., height, width)``) times the c-map, in place."""
+        if self.gain is not None:
+            a *= self.gain.reshape(a.shape[-2:])
+        return a
+
+    def per_pixel(self, c: float, npx: int) -> np.ndarray:
+        """A nominal threshold as ``(npx,)`` per-pixel thresholds (the c-map applied)."""
+        return c * self.gain if self.gain is not None else np.full(npx, c)
 
 
 def _from_level(level: np.ndarray, l_const: float) -> np.ndarray:
     """``L_const exp(level)`` as float32; a level beyond what float32 holds is saturated
     at its largest value (and counted in a warning)."""
-    log_img = level + math.log(l_const)
-    over = log_img > LOG_FLOAT32_MAX
-    if over.any():
+    log_img = np.add(level, math.log(l_const), out=level)  # level is the caller's own
+    top = float(log_img.max()) if log_img.size else 0.0
+    if top > LOG_FLOAT32_MAX:
         logger.warning(
             "%d pixel-cycles have a level beyond what a float32 image holds (log radiance "
             "up to %.0f > %.2f: hundreds more ON than OFF events, a hot pixel or a window "
             "longer than a ramp); set to the largest float32 (3.4e38)",
-            int(over.sum()), float(log_img.max()), LOG_FLOAT32_MAX)
-        log_img = np.minimum(log_img, 89.0)  # exp(89) > FLT_MAX: saturates below
-    return np.minimum(np.exp(log_img), FLOAT32_MAX).astype(np.float32)
+            int(np.count_nonzero(log_img > LOG_FLOAT32_MAX)), top, LOG_FLOAT32_MAX)
+        np.minimum(log_img, 89.0, out=log_img)  # exp(89) > FLT_MAX: saturated below
+    img = np.exp(log_img, out=log_img)
+    if top > LOG_FLOAT32_MAX:
+        np.minimum(img, FLOAT32_MAX, out=img)
+    return img.astype(np.float32)
 
 
 def _paper(method: str) -> Callable[[Recording, CycleWindows, _Params], np.ndarray]:
     def run(rec: Recording, windows: CycleWindows, p: _Params) -> np.ndarray:
-        s = polarity_sums(rec, windows, method=method, k=p.k)
-        shape = (rec.height, rec.width)
-        return _from_level(p.c_on.reshape(shape) * s[0] - p.c_off.reshape(shape) * s[1],
-                           p.l_const)
+        s = weighted_sums(rec, windows, method=method, k=p.k, c_on=p.c_on, c_off=p.c_off)
+        return _from_level(p.with_gain(s), p.l_const)
     return run
 
 
 def _count(rec: Recording, windows: CycleWindows, p: _Params) -> np.ndarray:
-    s = polarity_sums(rec, windows, method="count")
-    return _from_level(p.c_on.reshape(rec.height, rec.width) * s[0], p.l_const)
+    s = weighted_sums(rec, windows, method="count", c_on=p.c_on)
+    return _from_level(p.with_gain(s), p.l_const)
 
 
 def _ttfe(rec: Recording, windows: CycleWindows, p: _Params) -> np.ndarray:
@@ -421,7 +422,7 @@ def _ttfe(rec: Recording, windows: CycleWindows, p: _Params) -> np.ndarray:
             img = np.where(np.isnan(u), 0.0, 1.0 / np.maximum(u, 1e-9))
         return img.astype(np.float32)
     w1, w2 = rig.waveforms()
-    ec = np.exp(p.c_on.reshape(rec.height, rec.width))
+    ec = np.exp(p.per_pixel(p.c_on, rec.height * rec.width).reshape(rec.height, rec.width))
     # u is in the window's units; the waveforms are in cycle phase. Timestamps are
     # floored to whole µs: the crossing lies on average half a µs after its stamp.
     ph = (u * windows.window_us + 0.5) / rig.period_us
@@ -448,9 +449,10 @@ def _invert(rec: Recording, windows: CycleWindows, p: _Params) -> np.ndarray:
     cnt = np.zeros((windows.n_cycles, npx))
     ev = _sorted_events(rec)
     _invert_kernel(ev["x"], ev["y"], ev["p"], ev["t"], windows.start_us,
-                   float(windows.window_us), float(rig.period_us), rec.width, p.c_on, p.c_off,
-                   knots, w1(knots), w2(knots), np.zeros(npx, np.int64),
-                   np.zeros(npx, np.int64), np.full(npx, -1, np.int64), acc, cnt)
+                   float(windows.window_us), float(rig.period_us), rec.width,
+                   p.per_pixel(p.c_on, npx), p.per_pixel(p.c_off, npx), knots, w1(knots),
+                   w2(knots), np.zeros(npx, np.int64), np.zeros(npx, np.int64),
+                   np.full(npx, -1, np.int64), acc, cnt)
     with np.errstate(invalid="ignore", divide="ignore"):
         rho = np.where(cnt > 0, np.exp(acc / np.maximum(cnt, 1.0)), 0.0)
     return (p.l_const * rho).reshape(windows.n_cycles, rec.height, rec.width).astype(np.float32)
@@ -596,15 +598,13 @@ def _params(
         cm = cmap
     else:
         cm = cmap.for_method(method, k=k)
-    npx = src.height * src.width
-    if cm is None:
-        gain = np.ones(npx)
-    else:
+    gain = None
+    if cm is not None:
         if cm.shape != (src.height, src.width):
             raise ValueError(f"c-map shape {cm.shape} does not match the sensor "
                              f"({src.height}, {src.width})")
         gain = np.asarray(cm, dtype=np.float64).ravel()
-    return _Params(k=float(k), c_on=c_on * gain, c_off=c_off * gain, l_const=lc, rig=rig)
+    return _Params(k=float(k), c_on=c_on, c_off=c_off, gain=gain, l_const=lc, rig=rig)
 
 
 def reconstruct(
