@@ -1,23 +1,37 @@
-"""``asynhdr demo``, ``simulate``, ``calibrate``, ``reconstruct``."""
+"""``asynhdr demo`` and ``simulate``; the helpers every command shares (errors that name
+flags, the progress bar, output checks)."""
 
 from __future__ import annotations
 
+import functools
+import inspect
 import json
 import math
+import re
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
 import typer
 from rich.console import Console
-from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn
+from rich.progress import Progress as RichProgress
 from rich.table import Table
 
-from asynhdr.cli import app
+from asynhdr.cli._app import app
+from asynhdr.reconstruct import DEFAULT_K
+from asynhdr.rig import Rig
+from asynhdr.simulate import simulate as _simulate
+from asynhdr.source import Progress
+
+
+def _default(func: Any, name: str) -> Any:
+    """The default of ``func``'s parameter ``name``, where it is written once."""
+    return inspect.signature(func).parameters[name].default
 
 console = Console(width=None if sys.stdout.isatty() else 150)
 err_console = Console(stderr=True, width=None if sys.stderr.isatty() else 110)
@@ -25,26 +39,67 @@ err_console = Console(stderr=True, width=None if sys.stderr.isatty() else 110)
 IMAGE_FORMATS = ("exr", "hdr", "npy", "png", "tif")
 
 
-def fail(msg: str) -> None:
-    """Print an error and exit with status 2."""
-    err_console.print(f"[bold red]error:[/] {msg}")
+@functools.cache
+def _option_flags() -> dict[str, str]:
+    """Python name -> flag of every option of every command (``period_us`` ->
+    ``--period-us``)."""
+    group = typer.main.get_command(app)
+    flags: dict[str, str] = {}
+    for cmd in getattr(group, "commands", {}).values():
+        for p in cmd.params:
+            opts = [o for o in getattr(p, "opts", []) if o.startswith("--")]
+            if p.name and opts and getattr(p, "param_type_name", "") == "option":
+                flags.setdefault(p.name, max(opts, key=len))
+    return flags
+
+
+def as_flags(msg: str) -> str:
+    """``msg`` with the library's parameter names turned into the command line's flags:
+    ``period_us`` -> ``--period-us``, ``single=True`` -> ``--single`` (names with an
+    underscore, and ``name=True``, so that ordinary words stay as they are)."""
+    for name, flag in _option_flags().items():
+        msg = re.sub(rf"(?<![\w-]){re.escape(name)}=(True|False)(?![\w-])", flag, msg)
+        if "_" in name:
+            msg = re.sub(rf"(?<![\w-]){re.escape(name)}(?![\w-])", flag, msg)
+    return msg
+
+
+def fail(msg: str) -> NoReturn:
+    """Print an error (library parameter names as this command's flags) and exit with
+    status 2."""
+    err_console.print(f"[bold red]error:[/] {as_flags(msg)}", highlight=False)
     raise typer.Exit(code=2)
 
 
 @contextmanager
-def progress_bar() -> Iterator[Callable[[str, int, int], None]]:
-    """A rich progress bar driven by ``update(stage, done, total)`` callbacks."""
-    with Progress(TextColumn("{task.description:<22}"), BarColumn(),
-                  TextColumn("{task.completed}/{task.total}"), TimeElapsedColumn(),
-                  console=err_console, transient=False) as prog:
+def progress_bar() -> Iterator[Progress]:
+    """A rich progress bar driven by the library's progress protocol
+    ``update(stage, done, total)`` (``total`` None: not known)."""
+    with RichProgress(TextColumn("{task.description:<22}"), BarColumn(), MofNCompleteColumn(),
+                      TimeElapsedColumn(),
+                      console=err_console, transient=False) as prog:
         tasks: dict[str, Any] = {}
 
-        def update(stage: str, done: int, total: int) -> None:
+        def update(stage: str, done: int, total: int | None) -> None:
             if stage not in tasks:
                 tasks[stage] = prog.add_task(stage, total=total)
             prog.update(tasks[stage], completed=done, total=total)
 
         yield update
+
+
+def check_outputs(paths: list[Path], *, overwrite: bool) -> None:
+    """Before any work: every output can be written; an existing one only with
+    ``--overwrite`` (and never a read-only one). Exits with a message otherwise."""
+    from asynhdr._atomic import check_output
+
+    for p in paths:
+        try:
+            check_output(p, overwrite=overwrite)
+        except FileExistsError:
+            fail(f"{p}: exists; pass --overwrite to replace it")
+        except ValueError as exc:
+            fail(str(exc))
 
 
 def _parse_formats(formats: str) -> list[str]:
@@ -70,13 +125,15 @@ def demo(
     out: Path = typer.Option(Path("out/demo"), help="Output folder."),
     width: int = typer.Option(640, help="Sensor width (pixels)."),
     height: int = typer.Option(480, help="Sensor height (pixels)."),
-    preset: str = typer.Option("v2e", help="Sensor preset: ideal | v2e | imx636 | davis346."),
+    preset: str = typer.Option(_default(_simulate, "sensor"),
+                               help="Sensor preset: ideal | v2e | imx636 | davis346."),
     compare: str | None = typer.Option(None, help="A second preset whose SNR columns are "
                                        "printed beside the first (e.g. ideal)."),
-    engine: str = typer.Option("exact", help="Simulator engine: exact | stepped."),
+    engine: str = typer.Option(_default(_simulate, "engine"),
+                               help="Simulator engine: exact | stepped."),
     n_cycles: int = typer.Option(3, help="Chart cycles to simulate."),
     n_flat: int = typer.Option(4, help="Flat-field captures for the c-map."),
-    k: float = typer.Option(10.0, help="k of the exponential weighting 2^(-k t)."),
+    k: float = typer.Option(DEFAULT_K, help="k of the exponential weighting 2^(-k t)."),
     seed: int = typer.Option(0, help="Seed of each capture's randomness."),
     sensor_seed: int = typer.Option(1, help="Seed of the sensor's frozen mismatch."),
 ) -> None:
@@ -257,25 +314,30 @@ def simulate(
                              "(.h5, .npz, .raw EVT 3.0, .txt)."),
     width: int = typer.Option(640, help="Sensor width (pixels)."),
     height: int = typer.Option(480, help="Sensor height (pixels)."),
-    preset: str = typer.Option("v2e", help="Sensor preset."),
+    preset: str = typer.Option(_default(_simulate, "sensor"), help="Sensor preset."),
     n_cycles: int = typer.Option(3, help="Modulation cycles."),
-    period_us: int = typer.Option(50_000, help="Cycle period (µs)."),
-    ramp_fraction: float = typer.Option(0.9, help="Part of the cycle the ramp takes."),
-    t1_shape: str = typer.Option("linear", help="Scene panel ramp: linear | exponential."),
-    t2_shape: str = typer.Option("linear", help="Reference panel ramp: linear | exponential."),
-    panel: str = typer.Option("ideal", help="Panels the drive goes through: ideal (the "
+    period_us: int = typer.Option(Rig.period_us, help="Cycle period (µs)."),
+    ramp_fraction: float = typer.Option(Rig.ramp_fraction,
+                                        help="Part of the cycle the ramp takes."),
+    t1_shape: str = typer.Option(Rig.t1_shape, help="Scene panel ramp: linear | exponential."),
+    t2_shape: str = typer.Option(Rig.t2_shape,
+                                 help="Reference panel ramp: linear | exponential."),
+    panel: str = typer.Option(Rig.panel, help="Panels the drive goes through: ideal (the "
                               "target at once) | tn | fast_shutter (real LC panels)."),
-    pre_emphasis: bool = typer.Option(True, help="Design the panels' drive to invert their "
-                                      "response (with --panel tn or fast_shutter)."),
-    l_const: float = typer.Option(10.0, help="Reference radiance, in the scene's unit."),
+    pre_emphasis: bool = typer.Option(Rig.pre_emphasis, help="Design the panels' drive to "
+                                      "invert their response (with --panel tn or "
+                                      "fast_shutter)."),
+    l_const: float = typer.Option(Rig.l_const, help="Reference radiance, in the scene's unit."),
     scale: float | None = typer.Option(None, help="Multiply the scene radiance by this "
                                        "(default for HDR images: automatic exposure, the "
                                        "log-average at L_const sqrt(contrast ratio 1))."),
     seed: int = typer.Option(0, help="Seed of this capture's randomness."),
     sensor_seed: int = typer.Option(1, help="Seed of the sensor's frozen mismatch "
                                     "(same seed, same sensor)."),
-    engine: str = typer.Option("exact", help="Simulator engine: exact | stepped."),
-    dt_us: float = typer.Option(5.0, help="Step of the stepped engine (µs)."),
+    engine: str = typer.Option(_default(_simulate, "engine"),
+                               help="Simulator engine: exact | stepped."),
+    dt_us: float = typer.Option(_default(_simulate, "dt_us"),
+                                help="Largest step of the time grid (µs)."),
     cfa: str | None = typer.Option(None, "--cfa", help="Colour sensor: a Bayer filter "
                                    "(rggb, bggr, grbg, gbrg) over the pixels; needs an RGB "
                                    "image. Default: grey."),
@@ -306,129 +368,3 @@ def simulate(
         fail(str(exc))
     console.print(f"{rec.events.size:,} events, {rec.triggers.size} triggers, "
                   f"{rec.width}x{rec.height} -> {out}")
-
-
-# --------------------------------------------------------------------------- calibrate
-
-
-@app.command()
-def calibrate(
-    flats: list[Path] = typer.Argument(..., help="Flat-field recordings of one sensor."),
-    out: Path = typer.Option(..., "--out", "-o", help="c-map to write (.npz)."),
-    k: float = typer.Option(10.0, help="k of the exponential weighting."),
-) -> None:
-    """Estimate the c-map (per-pixel threshold correction) from flat-field recordings."""
-    from asynhdr.calibrate import estimate_cmap
-    from asynhdr.io import open_recording
-    from asynhdr.io.cmap import save_cmap
-
-    try:
-        caps = []
-        with progress_bar() as update:
-            for i, f in enumerate(flats):
-                caps.append(open_recording(f))
-                update("read flat fields", i + 1, len(flats))
-        cmap = estimate_cmap(caps, k=k)
-        cmap.metadata["sources"] = [str(f) for f in flats]
-        save_cmap(out, cmap)
-    except (ValueError, FileNotFoundError) as exc:
-        fail(str(exc))
-    ex = cmap.maps[f"exp:k={k:g}"]
-    console.print(f"c-map from {len(flats)} captures ({cmap.metadata['n_cycles']} cycles): "
-                  f"{', '.join(cmap.maps)}; exp map spread (std) {float(np.std(ex)):.4f} -> {out}")
-
-
-# --------------------------------------------------------------------------- reconstruct
-
-
-@app.command()
-def reconstruct(
-    recording: Path = typer.Argument(..., help="Event recording (any supported format)."),
-    out: Path = typer.Option(..., "--out", "-o", help="Output folder."),
-    method: str = typer.Option("exp", help="raw | linear | quadratic | poly5 | exp | ttfe | "
-                               "count | invert."),
-    k: float = typer.Option(10.0, help="k of the exponential weighting."),
-    cmap: Path | None = typer.Option(None, help="c-map from 'asynhdr calibrate'."),
-    threshold: float | None = typer.Option(None, help="Contrast threshold c (default: the "
-                                           "recording's sensor, else 0.2)."),
-    window_us: float | None = typer.Option(None, help="Integration window after each cycle "
-                                           "start (default: the ramp, else the period)."),
-    period_us: float | None = typer.Option(None, help="Modulation period in µs, when known "
-                                           "(needed with fewer than two trigger edges)."),
-    single: bool = typer.Option(False, "--single", help="Treat the whole recording as one "
-                                "cycle (a single ramp, e.g. a temporal-mapping capture)."),
-    width: int | None = typer.Option(None, help="Sensor width, for files without geometry."),
-    height: int | None = typer.Option(None, help="Sensor height, for files without geometry."),
-    formats: str = typer.Option("exr,png", help=f"Comma-separated, from {IMAGE_FORMATS}."),
-    tonemap: str = typer.Option("log", help="PNG tone mapping: log | reinhard | linear."),
-    demosaic: str = typer.Option("malvar", help="Colour recordings (a CFA in the metadata): "
-                                 "malvar | bilinear | none (write the raw mosaic)."),
-) -> None:
-    """Reconstruct one HDR image per modulation cycle.
-
-    The file is read cycle by cycle (memory flat in file size) after one pass that
-    finds its cycles; with --single it is read whole.
-    """
-    from asynhdr.io.cmap import load_cmap
-    from asynhdr.io.images import write_image
-
-    fmts = _parse_formats(formats)
-    meta: dict[str, Any] = {"source": str(recording), "method": method, "k": k,
-                            "cmap": str(cmap) if cmap else None,
-                            "radiometric": method in ("ttfe", "invert")}
-
-    from asynhdr.cli._colour import DEMOSAIC_CHOICES, write_colour
-
-    if demosaic not in DEMOSAIC_CHOICES:
-        fail(f"--demosaic: expected one of {DEMOSAIC_CHOICES}, got {demosaic!r}")
-    rec_meta: dict[str, Any] = {}
-
-    def write(i: int, img: np.ndarray, unit: str) -> None:
-        stem = out / f"{recording.stem}_{method}_{i:04d}"
-        if rec_meta.get("cfa") and demosaic != "none":
-            write_colour(stem, img, rec_meta, fmts, method=demosaic, tonemap=tonemap,
-                         extra=dict(meta, cycle=i, unit=unit))
-            return
-        for f in fmts:
-            if f == "png":
-                write_image(stem.with_suffix(".png"), img, tonemap=tonemap)
-            else:
-                write_image(stem.with_suffix("." + f), img,
-                            metadata=dict(meta, cycle=i, unit=unit)
-                            if f in ("exr", "tif") else None)
-
-    try:
-        cm = load_cmap(cmap) if cmap is not None else None
-        if single:
-            from asynhdr.io import open_recording
-            from asynhdr.reconstruct import reconstruct as run
-            from asynhdr.reconstruct import windows_for
-
-            rec = open_recording(recording, width=width, height=height)
-            rec_meta.update(rec.metadata)
-            windows = windows_for(rec, window_us=window_us, single=True)
-            img = run(rec, method=method, k=k, cmap=cm, windows=windows,
-                      threshold=threshold)[0]
-            write(0, img, rec.metadata.get("radiance_unit", "relative"))
-            console.print(f"1 image ({method}) from {rec.events.size:,} events -> {out}/")
-            return
-        from asynhdr.reconstruct import reconstruct_file
-
-        with progress_bar() as update:
-            plan = reconstruct_file(recording, method=method, k=k, cmap=cm,
-                                    window_us=window_us, period_us=period_us,
-                                    threshold=threshold, width=width, height=height,
-                                    progress=lambda n: update("scan (events)", n, n))
-            unit = plan.metadata.get("radiance_unit", "relative")
-            rec_meta.update(plan.metadata)
-            for i, _, img in plan:
-                write(i, img, unit)
-                update("reconstruct (cycles)", i + 1, len(plan))
-    except (ValueError, FileNotFoundError) as exc:
-        fail(str(exc))
-    if rec_meta.get("cfa") and demosaic != "none":
-        console.print(f"colour recording (CFA {rec_meta['cfa']}): demosaiced ({demosaic}) "
-                      "to RGB")
-    console.print(f"{len(plan)} image{'s' if len(plan) != 1 else ''} ({method}) from "
-                  f"{plan.n_events:,} events, one cycle "
-                  f"at a time -> {out}/")
