@@ -52,10 +52,12 @@ __all__ = ["ENGINES", "draw_thresholds", "simulate"]
 
 logger = logging.getLogger(__name__)
 
-Progress = Callable[[int, int], None]
-"""``progress(done, total)``, called after each cycle."""
 
 ENGINES = ("exact", "stepped")
+
+Progress = Callable[[str, int, int], None]
+"""``progress(stage, done, total)``, the project's progress protocol
+(:data:`asynhdr.source.Progress`) with the total always known."""
 
 _JITTER_SPAN = 8.6
 """Largest |z| of a hash-normal draw (Box-Muller from 53-bit uniforms): bounds the
@@ -368,7 +370,7 @@ def simulate(
     frame_times_us : for a moving scene, ``scene`` is ``(n_frames, height, width)`` and
         these are the frames' times (µs, same clock as ``t0_us``; radiance is linear in
         time between frames and held outside them). Needs ``engine="stepped"``.
-    progress : called as ``progress(done_cycles, n_cycles)``.
+    progress : called as ``progress("simulate", done_cycles, n_cycles)`` after each cycle.
 
     Returns
     -------
@@ -452,7 +454,7 @@ def simulate(
         n_lost += lost
         chunks.append(ev)
         if progress is not None:
-            progress(k + 1, n_cycles)
+            progress("simulate", k + 1, n_cycles)
     events = _concat_sorted(chunks)
     step = sensor.timestamp_resolution_us
     if step > 1:

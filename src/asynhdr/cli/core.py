@@ -342,6 +342,7 @@ def simulate(
                                    "(rggb, bggr, grbg, gbrg) over the pixels; needs an RGB "
                                    "image. Default: grey."),
     colour: bool = typer.Option(False, "--colour", help="Same as --cfa rggb."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing file."),
 ) -> None:
     """Simulate a scene seen through the rig and write the recording."""
     from asynhdr.io import write_recording
@@ -349,6 +350,7 @@ def simulate(
     from asynhdr.sensor.params import get_preset
     from asynhdr.simulate import simulate as run
 
+    check_outputs([out], overwrite=overwrite)
     try:
         sensor = get_preset(preset)
         rig = Rig(period_us=period_us, ramp_fraction=ramp_fraction, t1_shape=t1_shape,  # type: ignore[arg-type]
@@ -362,8 +364,8 @@ def simulate(
         with progress_bar() as update:
             rec = run(sc, rig=rig, sensor=sensor, n_cycles=n_cycles, rng=seed,
                       sensor_seed=sensor_seed, engine=engine, dt_us=dt_us,
-                      progress=lambda d, t: update("simulate", d, t))
-        write_recording(out, rec)
+                      progress=update)
+        write_recording(out, rec, overwrite=overwrite)
     except (ValueError, FileNotFoundError) as exc:
         fail(str(exc))
     console.print(f"{rec.events.size:,} events, {rec.triggers.size} triggers, "
