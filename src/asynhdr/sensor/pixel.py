@@ -301,6 +301,14 @@ def _at(rows, ia, ib, wa, wb, s, k, t):
     return va + (vb - va) * ((t - s[k]) / (s[k + 1] - s[k]))
 
 
+@nb.njit(cache=True, inline="always")
+def _levels(r_lvl, con, coff, log_domain):
+    """The ON and OFF levels for reference ``r_lvl``, in the signal's domain."""
+    if log_domain:
+        return r_lvl + con, r_lvl - coff
+    return math.exp(r_lvl + con), math.exp(r_lvl - coff)
+
+
 # ----------------------------------------------------------------------------- one cycle
 
 
@@ -367,12 +375,7 @@ def _fire(pix, order, s, idx, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pi
             if pend:
                 r_lvl = (v if log_domain else math.log(v)) + sigma * pz
                 pend = False
-            if log_domain:
-                thi = r_lvl + con
-                tlo = r_lvl - coff
-            else:
-                thi = math.exp(r_lvl + con)
-                tlo = math.exp(r_lvl - coff)
+            thi, tlo = _levels(r_lvl, con, coff, log_domain)
             while True:
                 chi = thi - _EPS if log_domain else thi * (1.0 - _EPS)
                 clo = tlo + _EPS if log_domain else tlo * (1.0 + _EPS)
@@ -486,12 +489,7 @@ def _fire(pix, order, s, idx, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pi
                         k = _locate(s, idx, runs[r, 0], runs[r, 1] - 1, t)
                         v = _at(rows, ra, rb, xa, xb, s, k, t)
                         r_lvl = (v if log_domain else math.log(v)) + sigma * zr
-                        if log_domain:
-                            thi = r_lvl + con
-                            tlo = r_lvl - coff
-                        else:
-                            thi = math.exp(r_lvl + con)
-                            tlo = math.exp(r_lvl - coff)
+                        thi, tlo = _levels(r_lvl, con, coff, log_domain)
                     free = t
                     continue
                 t_end = tf + lat_us + refr_us
@@ -505,12 +503,7 @@ def _fire(pix, order, s, idx, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pi
                 k = _locate(s, idx, runs[r, 0], runs[r, 1] - 1, t)
                 v = _at(rows, ra, rb, xa, xb, s, k, t)
                 r_lvl = (v if log_domain else math.log(v)) + sigma * zr
-                if log_domain:
-                    thi = r_lvl + con
-                    tlo = r_lvl - coff
-                else:
-                    thi = math.exp(r_lvl + con)
-                    tlo = math.exp(r_lvl - coff)
+                thi, tlo = _levels(r_lvl, con, coff, log_domain)
             while q < qe:
                 if nz_t[q] < free:
                     lost += 1
