@@ -487,5 +487,7 @@ def simulate(
         metadata.setdefault(key, value)
     logger.info("simulated %d events over %d cycles on %dx%d (%s engine)", events.size,
                 n_cycles, width, height, engine)
-    return Recording(events=events, width=width, height=height,
-                     triggers=rig.triggers(n_cycles, t0_us=t0_us), metadata=metadata)
+    # every event was made inside the sensor with polarity +1 or -1, sorted by time
+    return Recording.from_checked(events=events, width=width, height=height,
+                                  triggers=rig.triggers(n_cycles, t0_us=t0_us),
+                                  metadata=metadata)
