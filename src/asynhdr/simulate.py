@@ -338,7 +338,7 @@ def simulate(
     t0_us: int = 0,
     thresholds: tuple[np.ndarray, np.ndarray] | None = None,
     sensor_seed: int | None = None,
-    engine: str = "exact",
+    engine: str = "auto",
     dt_us: float = DEFAULT_DT_US,
     dlog_radiance: float = DEFAULT_DLOG_RADIANCE,
     frame_times_us: np.ndarray | None = None,
@@ -361,7 +361,8 @@ def simulate(
     sensor_seed : when given, the sensor's frozen maps (threshold mismatch, hot and
         dead pixels) are drawn from this seed rather than from ``rng``: the same seed
         is the same physical sensor across captures.
-    engine : ``"exact"`` (static scenes: crossings solved on the exact irradiance, or on
+    engine : ``"auto"`` (``"exact"`` for a static scene, ``"stepped"`` for a moving one),
+        ``"exact"`` (static scenes: crossings solved on the exact irradiance, or on
         the photoreceptor output tabulated over radiance) or ``"stepped"`` (each pixel's
         signal integrated on the time grid; needed for a moving scene).
     dt_us : largest step of the time grid where a signal is integrated (the
@@ -369,7 +370,8 @@ def simulate(
     dlog_radiance : step of the log-radiance grid of the exact engine's low-pass table.
     frame_times_us : for a moving scene, ``scene`` is ``(n_frames, height, width)`` and
         these are the frames' times (µs, same clock as ``t0_us``; radiance is linear in
-        time between frames and held outside them). Needs ``engine="stepped"``.
+        time between frames and held outside them); a scene with ``times_us`` (a
+        :class:`asynhdr.scene.MovingScene`) gives its own. Needs the stepped engine.
     progress : called as ``progress("simulate", done_cycles, n_cycles)`` after each cycle.
 
     Returns
@@ -385,8 +387,12 @@ def simulate(
         raise ValueError(f"n_cycles must be a whole number >= 1, got {n_cycles}")
     if int(t0_us) != t0_us:
         raise ValueError(f"t0_us must be a whole number of µs, got {t0_us}")
+    if frame_times_us is None and getattr(scene, "times_us", None) is not None:
+        frame_times_us = scene.times_us  # type: ignore[union-attr]
+    if engine == "auto":
+        engine = "stepped" if frame_times_us is not None else "exact"
     if engine not in ENGINES:
-        raise ValueError(f"unknown engine {engine!r}; expected one of {ENGINES}")
+        raise ValueError(f"unknown engine {engine!r}; expected 'auto' or one of {ENGINES}")
     dead_us = sensor.refractory_us + sensor.latency_us
     if dead_us >= rig.period_us:
         raise ValueError(f"refractory_us + latency_us ({dead_us:g}) must be shorter than the "

@@ -18,6 +18,7 @@ def _register() -> None:
         generator,
         info,
         reconstruct,
+        video,
         waveform,
     )
 

@@ -130,7 +130,8 @@ def demo(
     compare: str | None = typer.Option(None, help="A second preset whose SNR columns are "
                                        "printed beside the first (e.g. ideal)."),
     engine: str = typer.Option(_default(_simulate, "engine"),
-                               help="Simulator engine: exact | stepped."),
+                               help="Simulator engine: auto (exact for a static scene, "
+                               "stepped for a moving one) | exact | stepped."),
     n_cycles: int = typer.Option(3, help="Chart cycles to simulate."),
     n_flat: int = typer.Option(4, help="Flat-field captures for the c-map."),
     k: float = typer.Option(DEFAULT_K, help="k of the exponential weighting 2^(-k t)."),
@@ -306,6 +307,21 @@ def _scene_from_spec(spec: str, width: int, height: int, scale: float | None,
                              name=Path(spec).stem, unit="lux", fit="pad")
 
 
+def _moving(sc: Any, spec: str, *, duration_us: float, frame_step_us: float) -> Any:
+    """The scene moved by ``--motion VX,VY`` (px/s) over the capture."""
+    from asynhdr.scene import moving_scene
+
+    try:
+        vx, vy = (float(v) for v in spec.split(","))
+    except ValueError:
+        fail(f"--motion: expected VX,VY in pixels per second (e.g. 200,0), got {spec!r}")
+    if getattr(sc, "cfa", None):
+        fail("--motion: a moving colour scene is not supported; drop --cfa/--colour")
+    return moving_scene(sc.radiance, velocity_px_per_s=(vx, vy), duration_us=duration_us,
+                        frame_step_us=frame_step_us, unit=getattr(sc, "unit", "relative"),
+                        name=getattr(sc, "name", ""))
+
+
 @app.command()
 def simulate(
     scene: str = typer.Argument(..., help="'chart' (the paper's step chart), "
@@ -335,13 +351,19 @@ def simulate(
     sensor_seed: int = typer.Option(1, help="Seed of the sensor's frozen mismatch "
                                     "(same seed, same sensor)."),
     engine: str = typer.Option(_default(_simulate, "engine"),
-                               help="Simulator engine: exact | stepped."),
+                               help="Simulator engine: auto (exact for a static scene, "
+                               "stepped for a moving one) | exact | stepped."),
     dt_us: float = typer.Option(_default(_simulate, "dt_us"),
                                 help="Largest step of the time grid (µs)."),
     cfa: str | None = typer.Option(None, "--cfa", help="Colour sensor: a Bayer filter "
                                    "(rggb, bggr, grbg, gbrg) over the pixels; needs an RGB "
                                    "image. Default: grey."),
     colour: bool = typer.Option(False, "--colour", help="Same as --cfa rggb."),
+    motion: str | None = typer.Option(None, help="Move the scene across the sensor: "
+                                      "VX,VY in pixels per second (a pan); simulated by the "
+                                      "stepped engine."),
+    frame_step_us: float = typer.Option(1_000.0, help="With --motion: time between the "
+                                        "moving scene's frames (µs)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing file."),
 ) -> None:
     """Simulate a scene seen through the rig and write the recording."""
@@ -361,6 +383,9 @@ def simulate(
         sc = _scene_from_spec(scene, width, height, scale,
                               target=l_const * math.sqrt(rig.contrast_ratio_1),
                               cfa=cfa or ("rggb" if colour else None))
+        if motion is not None:
+            sc = _moving(sc, motion, duration_us=n_cycles * period_us,
+                         frame_step_us=frame_step_us)
         with progress_bar() as update:
             rec = run(sc, rig=rig, sensor=sensor, n_cycles=n_cycles, rng=seed,
                       sensor_seed=sensor_seed, engine=engine, dt_us=dt_us,
