@@ -15,7 +15,7 @@ PACKAGE = SRC / "asynhdr"
 LAYERED = ("asynhdr.rig", "asynhdr.panel", "asynhdr.scene", "asynhdr.sensor",
            "asynhdr.simulate", "asynhdr.reconstruct", "asynhdr.calibrate", "asynhdr.segment",
            "asynhdr.metrics", "asynhdr.waveform", "asynhdr.tonemap", "asynhdr.events",
-           "asynhdr.source")
+           "asynhdr.source", "asynhdr.motion")
 """Physics and algorithm modules (and the Source between them and files)."""
 
 

@@ -16,9 +16,11 @@ The tolerances of both, against a fine-step integration, are in docs/sensor.md.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
@@ -48,7 +50,8 @@ from asynhdr.sensor.photoreceptor import (
 )
 from asynhdr.sensor.pixel import PixelState, cycle_pieces, fire_cycle, gather_sorted
 
-__all__ = ["ENGINES", "draw_thresholds", "simulate"]
+__all__ = ["ENGINES", "CycleEvents", "draw_thresholds", "finish_recording", "simulate",
+           "simulate_cycles"]
 
 logger = logging.getLogger(__name__)
 
@@ -263,19 +266,25 @@ class _Engine:
 
     def run_cycle(self, *, cycle: int, t_start_us: int, state: PixelState, c_on: np.ndarray,
                   c_off: np.ndarray, alive: np.ndarray, noise: NoiseArrivals, seed: int,
-                  sensor: SensorParams, t_lo: int, nbins: int) -> tuple[np.ndarray, int]:
+                  sensor: SensorParams, t_lo: int, nbins: int, lo: int, hi: int
+                  ) -> tuple[np.ndarray, int]:
+        """Events of pixels ``lo .. hi - 1`` in one cycle (time-sorted, stable in pixel
+        order) and how many background arrivals met a blind pixel."""
         common = dict(c_on=c_on, c_off=c_off, state=state, alive=alive, seed=seed, cycle=cycle,
                       reset_noise_sigma=sensor.reset_noise_sigma,
                       refractory_us=sensor.refractory_us, latency_us=sensor.latency_us,
                       jitter_sigma_us=sensor.jitter_sigma_us,
                       period_us=float(self.rig.period_us), t_lo=t_lo, nbins=nbins)
+        sel = slice(lo, hi)
+        nz = noise.select(lo, hi)
+        pix = self.pix[sel]
         if self.kind == "exact" and self.lowpass is None:
             counts, st, sp, off, lost = fire_cycle(
-                self.pix, self.s, self.rows, self.ia, self.ib, self.wa, self.wb,
-                log_domain=False, pieces=self.pieces, run_key=None, run_off=None,
-                run_tab=None, noise_off=noise.offsets, noise_t=noise.t_us,
-                noise_pol=noise.polarity, **common)  # type: ignore[arg-type]
-            ev = gather_sorted(off, counts, st, sp, self.pix, width=self.width,
+                pix, self.s, self.rows, self.ia[sel], self.ib[sel], self.wa[sel],
+                self.wb[sel], log_domain=False, pieces=self.pieces, run_key=None,
+                run_off=None, run_tab=None, noise_off=nz.offsets, noise_t=nz.t_us,
+                noise_pol=nz.polarity, **common)  # type: ignore[arg-type]
+            ev = gather_sorted(off, counts, st, sp, pix, width=self.width,
                                t_first_us=t_start_us + t_lo, nbins=nbins)
             return ev, lost
         if self.kind == "exact":
@@ -285,15 +294,14 @@ class _Engine:
             self.y = y_end
             run_off, run_tab = row_runs(rows, self.pairs, self.pairs + 1)
             counts, st, sp, off, lost = fire_cycle(
-                self.pix, self.s, rows, self.ia, self.ib, self.wa, self.wb, log_domain=True,
-                pieces=None, run_key=self.run_key, run_off=run_off, run_tab=run_tab,
-                noise_off=noise.offsets, noise_t=noise.t_us, noise_pol=noise.polarity,
-                **common)  # type: ignore[arg-type]
-            ev = gather_sorted(off, counts, st, sp, self.pix, width=self.width,
+                pix, self.s, rows, self.ia[sel], self.ib[sel], self.wa[sel], self.wb[sel],
+                log_domain=True, pieces=None, run_key=self.run_key[sel], run_off=run_off,
+                run_tab=run_tab, noise_off=nz.offsets, noise_t=nz.t_us,
+                noise_pol=nz.polarity, **common)  # type: ignore[arg-type]
+            ev = gather_sorted(off, counts, st, sp, pix, width=self.width,
                                t_first_us=t_start_us + t_lo, nbins=nbins)
             return ev, lost
         # stepped: each pixel's own row, a chunk of pixels at a time
-        npix = self.pix.size
         if self.frames.shape[1] > 1:
             self._set_grid(self.times_us - t_start_us)
         fa, fw = _frame_weights(self.times_us, t_start_us + self.s)
@@ -301,29 +309,31 @@ class _Engine:
         all_t: list[np.ndarray] = []
         all_p: list[np.ndarray] = []
         lost_total = 0
-        for lo in range(0, npix, _STEPPED_CHUNK):
-            hi = min(npix, lo + _STEPPED_CHUNK)
-            rows, y_end = pixel_rows(self.frames[lo:hi], fa, fw, self.a1, self.b2, self.s,
-                                     self.y[lo:hi], self.lowpass)
-            self.y[lo:hi] = y_end
-            local = np.arange(hi - lo, dtype=np.int64)
+        for a in range(lo, hi, _STEPPED_CHUNK):
+            b = min(hi, a + _STEPPED_CHUNK)
+            rows, y_end = pixel_rows(self.frames[a:b], fa, fw, self.a1, self.b2, self.s,
+                                     self.y[a:b], self.lowpass)
+            self.y[a:b] = y_end
+            local = np.arange(b - a, dtype=np.int64)
             run_off, run_tab = row_runs(rows, local, local)
-            nz = noise.select(lo, hi)
+            nzc = noise.select(a, b)
             counts, st, sp, off, lost = fire_cycle(
-                self.pix[lo:hi], self.s, rows, local, local, np.ones(hi - lo),
-                np.zeros(hi - lo), log_domain=self.lowpass is not None, pieces=None,
-                run_key=local, run_off=run_off, run_tab=run_tab, noise_off=nz.offsets,
-                noise_t=nz.t_us, noise_pol=nz.polarity, **common)  # type: ignore[arg-type]
+                self.pix[a:b], self.s, rows, local, local, np.ones(b - a),
+                np.zeros(b - a), log_domain=self.lowpass is not None, pieces=None,
+                run_key=local, run_off=run_off, run_tab=run_tab, noise_off=nzc.offsets,
+                noise_t=nzc.t_us, noise_pol=nzc.polarity, **common)  # type: ignore[arg-type]
             lost_total += lost
             keep = (np.arange(st.size) - np.repeat(off[:-1], np.diff(off))
                     < np.repeat(counts, np.diff(off)))
             all_counts.append(counts)
             all_t.append(st[keep])
             all_p.append(sp[keep])
-        counts = np.concatenate(all_counts)
-        off = np.zeros(npix + 1, dtype=np.int64)
+        counts = np.concatenate(all_counts) if all_counts else np.zeros(0, np.int64)
+        off = np.zeros(counts.size + 1, dtype=np.int64)
         np.cumsum(counts, out=off[1:])
-        ev = gather_sorted(off, counts, np.concatenate(all_t), np.concatenate(all_p), self.pix,
+        ev = gather_sorted(off, counts,
+                           np.concatenate(all_t) if all_t else np.zeros(0, np.int32),
+                           np.concatenate(all_p) if all_p else np.zeros(0, np.int8), pix,
                            width=self.width, t_first_us=t_start_us + t_lo, nbins=nbins)
         return ev, lost_total
 
@@ -380,6 +390,64 @@ def simulate(
     engine, the seeds, how many events the signal and the background made, and what the
     readout did (``"readout"``: emitted, delivered, delayed, dropped events).
     """
+    parts = simulate_cycles(
+        scene, rig=rig, sensor=sensor, n_cycles=n_cycles, rng=rng, t0_us=t0_us,
+        thresholds=thresholds, sensor_seed=sensor_seed, engine=engine, dt_us=dt_us,
+        dlog_radiance=dlog_radiance, frame_times_us=frame_times_us, progress=progress)
+    return finish_recording([parts])
+
+
+@dataclass
+class CycleEvents:
+    """The events of a range of pixels, cycle by cycle, before the readout.
+
+    Made by :func:`simulate_cycles`; :func:`finish_recording` joins the parts of a
+    sensor into the recording :func:`simulate` returns.
+
+    Attributes
+    ----------
+    pixels : ``(lo, hi)``: the row-major pixel range.
+    cycles : per cycle, the range's events sorted by time (stable in pixel order).
+    n_arrivals, n_lost : background arrivals on the range, and those that met a blind
+        pixel.
+    context : what the recording's metadata says besides the counts and the readout,
+        the sensor, the geometry and the triggers.
+    """
+
+    pixels: tuple[int, int]
+    cycles: list[np.ndarray]
+    n_arrivals: int
+    n_lost: int
+    context: dict[str, Any]
+
+
+def simulate_cycles(
+    scene: _HasRadiance | np.ndarray,
+    *,
+    rig: Rig | None = None,
+    sensor: SensorParams | str = "v2e",
+    n_cycles: int = 1,
+    rng: np.random.Generator | int | None = 0,
+    t0_us: int = 0,
+    thresholds: tuple[np.ndarray, np.ndarray] | None = None,
+    sensor_seed: int | None = None,
+    engine: str = "auto",
+    dt_us: float = DEFAULT_DT_US,
+    dlog_radiance: float = DEFAULT_DLOG_RADIANCE,
+    frame_times_us: np.ndarray | None = None,
+    progress: Progress | None = None,
+    pixels: tuple[int, int] | None = None,
+) -> CycleEvents:
+    """The cycles of :func:`simulate` for the pixels ``pixels = (lo, hi)`` (row-major,
+    default all), before the readout: the work of one part when a sensor is split
+    across processes or machines (:mod:`asynhdr.distributed`).
+
+    Everything random is drawn as for the whole sensor (thresholds, hot and dead pixels,
+    each cycle's background arrivals; per-event draws are a hash of the pixel), and the
+    grids that depend on the scene (the log-radiance table, the time grid) come from the
+    whole scene, so the parts of a sensor joined by :func:`finish_recording` are the
+    events of one :func:`simulate` call, bit for bit. Arguments as in :func:`simulate`.
+    """
     rig = rig or Rig()
     if isinstance(sensor, str):
         sensor = get_preset(sensor)
@@ -405,6 +473,9 @@ def simulate(
     if width > 65535 or height > 65535:
         raise ValueError(f"sensor too large for uint16 coordinates: {width}x{height}")
     npix = width * height
+    lo, hi = (0, npix) if pixels is None else (int(pixels[0]), int(pixels[1]))
+    if not 0 <= lo <= hi <= npix:
+        raise ValueError(f"pixels must be a range (lo, hi) within 0 .. {npix}, got {pixels}")
     if moving:
         times = _check_frame_times(frame_times_us, radiance.shape[0])
         frames = np.ascontiguousarray(radiance.reshape(radiance.shape[0], -1).T,
@@ -455,20 +526,13 @@ def simulate(
             noise = no_noise
         ev, lost = eng.run_cycle(cycle=k, t_start_us=t_start, state=state, c_on=c_on_f,
                                  c_off=c_off_f, alive=alive, noise=noise, seed=hash_seed,
-                                 sensor=sensor, t_lo=t_lo, nbins=nbins)
-        n_arrivals += int(noise.t_us.size)
+                                 sensor=sensor, t_lo=t_lo, nbins=nbins, lo=lo, hi=hi)
+        n_arrivals += int(noise.offsets[hi] - noise.offsets[lo])
         n_lost += lost
         chunks.append(ev)
         if progress is not None:
             progress("simulate", k + 1, n_cycles)
-    events = _concat_sorted(chunks)
-    step = sensor.timestamp_resolution_us
-    if step > 1:
-        events["t"] = (events["t"] // step) * step
-    n_emitted = int(events.size)
-    n_background = n_arrivals - n_lost
-    events, stats = apply_arbiter(events, sensor)
-    metadata: dict[str, Any] = {
+    context: dict[str, Any] = {
         "simulated": True,
         "asynhdr_version": __version__,
         "engine": engine,
@@ -482,18 +546,66 @@ def simulate(
         "sensor_seed": sensor_seed,
         "radiance_unit": info.get("unit", "relative"),
         "scene": info.get("name", ""),
-        "counts": {"signal": n_emitted - n_background, "background": n_background,
-                   "background_lost_in_dead_time": n_lost,
-                   "hot_pixels": int(defects.hot.size), "dead_pixels": int(defects.dead.size)},
-        "readout": {"emitted": stats.emitted, "delivered": stats.delivered,
-                    "delayed": stats.delayed, "dropped": stats.dropped,
-                    "max_delay_us": stats.max_delay_us},
+        "width": int(width),
+        "height": int(height),
+        "hot_pixels": int(defects.hot.size),
+        "dead_pixels": int(defects.dead.size),
+        "scene_metadata": info["metadata"],
     }
-    for key, value in info["metadata"].items():  # what the scene says of itself (a CFA)
+    return CycleEvents(pixels=(lo, hi), cycles=chunks, n_arrivals=n_arrivals, n_lost=n_lost,
+                       context=context)
+
+
+def finish_recording(parts: list[CycleEvents]) -> Recording:
+    """The recording of a sensor from the parts :func:`simulate_cycles` made for
+    consecutive pixel ranges covering it (in pixel order): each cycle's events joined in
+    time order (stable: pixel order among equal times, as one call makes them), the
+    cycles joined, timestamps floored to the sensor's resolution, then the readout
+    (:func:`asynhdr.sensor.noise.apply_arbiter`) over the whole stream."""
+    if not parts:
+        raise ValueError("finish_recording: no parts")
+    parts = sorted(parts, key=lambda p: p.pixels[0])
+    ctx = parts[0].context
+    npix = ctx["width"] * ctx["height"]
+    edges = [p.pixels for p in parts]
+    if edges[0][0] != 0 or edges[-1][1] != npix or any(
+            a[1] != b[0] for a, b in itertools.pairwise(edges)):
+        raise ValueError(f"finish_recording: the parts {edges} do not cover the sensor's "
+                         f"{npix} pixels once, in order")
+    sensor = SensorParams.from_metadata(ctx["sensor"])
+    n_cycles = ctx["n_cycles"]
+    chunks = []
+    for k in range(n_cycles):
+        cyc = [p.cycles[k] for p in parts if p.cycles[k].size]
+        if len(cyc) <= 1:
+            chunks.append(cyc[0] if cyc else np.zeros(0, EVENT_DTYPE))
+            continue
+        joined = np.concatenate(cyc)
+        chunks.append(joined[np.argsort(joined["t"], kind="stable")])
+    n_arrivals = sum(p.n_arrivals for p in parts)
+    n_lost = sum(p.n_lost for p in parts)
+    events = _concat_sorted(chunks)
+    step = sensor.timestamp_resolution_us
+    if step > 1:
+        events["t"] = (events["t"] // step) * step
+    n_emitted = int(events.size)
+    n_background = n_arrivals - n_lost
+    events, stats = apply_arbiter(events, sensor)
+    metadata = {k: v for k, v in ctx.items()
+                if k not in ("width", "height", "hot_pixels", "dead_pixels", "scene_metadata")}
+    metadata["counts"] = {"signal": n_emitted - n_background, "background": n_background,
+                          "background_lost_in_dead_time": n_lost,
+                          "hot_pixels": ctx["hot_pixels"], "dead_pixels": ctx["dead_pixels"]}
+    metadata["readout"] = {"emitted": stats.emitted, "delivered": stats.delivered,
+                           "delayed": stats.delayed, "dropped": stats.dropped,
+                           "max_delay_us": stats.max_delay_us}
+    for key, value in ctx["scene_metadata"].items():  # what the scene says of itself (a CFA)
         metadata.setdefault(key, value)
+    width, height = ctx["width"], ctx["height"]
     logger.info("simulated %d events over %d cycles on %dx%d (%s engine)", events.size,
-                n_cycles, width, height, engine)
+                n_cycles, width, height, ctx["engine"])
+    rig = Rig.from_metadata(ctx["rig"])
     # every event was made inside the sensor with polarity +1 or -1, sorted by time
     return Recording.from_checked(events=events, width=width, height=height,
-                                  triggers=rig.triggers(n_cycles, t0_us=t0_us),
+                                  triggers=rig.triggers(n_cycles, t0_us=ctx["t0_us"]),
                                   metadata=metadata)

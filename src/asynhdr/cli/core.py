@@ -364,6 +364,11 @@ def simulate(
                                       "stepped engine."),
     frame_step_us: float = typer.Option(1_000.0, help="With --motion: time between the "
                                         "moving scene's frames (µs)."),
+    scheduler: str | None = typer.Option(None, help="Spread the sensor over dask workers: "
+                                         "'local' (a cluster on this machine) or a "
+                                         "scheduler's address; same events as without."),
+    workers: int | None = typer.Option(None, help="With --scheduler local: worker "
+                                       "processes (default: one per core)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing file."),
 ) -> None:
     """Simulate a scene seen through the rig and write the recording."""
@@ -386,10 +391,18 @@ def simulate(
         if motion is not None:
             sc = _moving(sc, motion, duration_us=n_cycles * period_us,
                          frame_step_us=frame_step_us)
-        with progress_bar() as update:
-            rec = run(sc, rig=rig, sensor=sensor, n_cycles=n_cycles, rng=seed,
-                      sensor_seed=sensor_seed, engine=engine, dt_us=dt_us,
-                      progress=update)
+        kw: dict[str, Any] = dict(rig=rig, sensor=sensor, n_cycles=n_cycles, rng=seed,
+                                  sensor_seed=sensor_seed, engine=engine, dt_us=dt_us)
+        if scheduler is not None:
+            from asynhdr.distributed import scheduler_client, simulate_distributed
+
+            with scheduler_client(scheduler, workers=workers) as client:
+                err_console.print(f"simulating on {len(client.scheduler_info()['workers'])} "
+                                  f"dask workers ({scheduler})")
+                rec = simulate_distributed(client, sc, **kw)
+        else:
+            with progress_bar() as update:
+                rec = run(sc, progress=update, **kw)
         write_recording(out, rec, overwrite=overwrite)
     except (ValueError, FileNotFoundError) as exc:
         fail(str(exc))

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -60,6 +62,11 @@ def reconstruct(
     tonemap: str = typer.Option("log", help="PNG tone mapping: log | reinhard | linear."),
     demosaic: str = typer.Option("malvar", help="Colour recordings (a CFA in the metadata): "
                                  "malvar | bilinear | none (write the raw mosaic)."),
+    scheduler: str | None = typer.Option(None, help="Spread the cycles over dask workers: "
+                                         "'local' (a cluster on this machine) or a "
+                                         "scheduler's address; same images as without."),
+    workers: int | None = typer.Option(None, help="With --scheduler local: worker "
+                                       "processes (default: one per core)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace existing images."),
 ) -> None:
     """Reconstruct one HDR image per modulation cycle.
@@ -90,7 +97,7 @@ def reconstruct(
                             "cmap": str(cmap) if cmap else None, "radiometric": m.radiometric}
     try:
         cm = load_cmap(cmap) if cmap is not None else None
-        with progress_bar() as update:
+        with contextlib.ExitStack() as stack, progress_bar() as update:
             plan = reconstruct_cycles(src, method=method, k=k, cmap=cm, window_us=window_us,
                                       period_us=period_us, single=single,
                                       threshold_on=threshold_on, threshold_off=threshold_off,
@@ -98,8 +105,16 @@ def reconstruct(
             unit = plan.metadata.get("radiance_unit", "relative")
             warm = plan.windows.warmup
             colour = bool(plan.metadata.get("cfa")) and demosaic != "none"
+            images: Iterable[tuple[int, int, np.ndarray]] = plan
+            if scheduler is not None:
+                from asynhdr.distributed import reconstruct_distributed, scheduler_client
+
+                client = stack.enter_context(scheduler_client(scheduler, workers=workers))
+                images = reconstruct_distributed(
+                    client, recording, plan.windows, method=method, k=k, cmap=cmap,
+                    threshold_on=threshold_on, threshold_off=threshold_off, progress=update)
             written = 0
-            for i, _, img in plan:
+            for i, _, img in images:
                 if skip_warmup and i < warm:
                     continue
                 info = dict(meta, cycle=i, unit=unit, warmup=i < warm)
