@@ -3,6 +3,7 @@ results bit for bit, on a real dask.distributed LocalCluster of worker processes
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 
 import numpy as np
@@ -28,7 +29,7 @@ def test_pixel_ranges_join_into_the_serial_recording(preset: str, engine: str) -
     cuts = [0, 700, 1201, 2000, 64 * 40]
     parts = [simulate_cycles(chart, sensor=preset, n_cycles=3, rng=4, sensor_seed=2,
                              engine=engine, pixels=(a, b))
-             for a, b in zip(cuts, cuts[1:], strict=False)]
+             for a, b in itertools.pairwise(cuts)]
     joined = finish_recording(parts[::-1])  # any order: joined by pixel range
     assert whole.events.size > 10_000
     assert joined.events.tobytes() == whole.events.tobytes()
