@@ -1,0 +1,771 @@
+"""Maximum-likelihood radiance from each pixel's events, under the simulator's own model.
+
+The forward model is the one of :mod:`asynhdr.sensor.pixel`: a pixel's comparator reads
+its signal ``V(t; g)`` (``g = ln L``), the log irradiance
+``ln(k_lens (T1(t) L + T2(t) L_const))`` of the rig's *transmitted* waveforms (panels
+included), or the photoreceptor's low-pass output of it
+(:mod:`asynhdr.sensor.photoreceptor`, the same integrator, tabulated here over a
+log-radiance grid). An event fires when ``V`` leaves the band ``(ref - c_off, ref + c_on)``
+around the pixel's reference; its timestamp is ``floor(t_c + jitter + latency)``; the
+reference is then taken at the end of the dead time, ``t_e = t_f + latency + refractory``,
+with reset noise (or, for a pixel without dead time, moves to the level crossed).
+
+Per pixel and cycle the events ``(t_i, p_i)`` give one equation each, conditional on the
+previous event (the chain the pixel itself follows)::
+
+    r_i = V(t_c,i; g) - ref_i - p_i c_{p_i}  ~  N(0, s_i^2)
+
+    t_c,i = t_i + res/2 - latency                  (the crossing, from the stamp)
+    ref_i = V(t_e,i-1; g)                          (dead time: t_e = t_i-1 + res/2 + refractory)
+    ref_i = V(0; g) + u + sum_{k<i} p_k c_{p_k}    (no dead time: the level walks by c)
+    ref_1 = V(0; g) + u                            (the first event of the cycle)
+    s_i^2 = sigma_reset^2 (i for the walk) + V'(t_c,i)^2 (sigma_jitter^2 + res^2/12)
+            + V'(t_e,i-1)^2 res^2 / 12
+
+``u`` is where the reference stood at the cycle's start relative to ``V(0)`` (unknown:
+a prior uniform over ``(-c_on, c_off)``, used as a Gaussian of the same mean and
+variance). The thresholds are parameters too, with the calibrated (or nominal) values as
+Gaussian priors of their stated spread: the fit is over ``theta = (g, u, c_on, c_off)``,
+by Gauss-Newton (iteratively reweighted least squares), from a start found by a
+bracketing root search on ``sum_i r_i(g)`` (each ``r_i`` rises with ``g`` during a ramp).
+Background events (leak, shot noise) are outliers at their rate ``lambda`` (per µs): an
+event's weight is the posterior probability that it is signal,
+``f_i / (f_i + lambda)`` with ``f_i = phi(r_i / s_i) |V'(t_c,i)| / s_i`` the signal's
+density in time. Such an event still resets the pixel, which the chain keeps.
+
+The image is ``L = exp(g_hat)`` in the scene's unit; the uncertainty is the standard
+deviation of ``g_hat`` from the inverse of the information matrix at the estimate
+(thresholds and ``u`` marginalised), the Cramér-Rao bound of this model for this pixel's
+events. :func:`fisher_information` evaluates the same matrix at a given ``g`` (the
+truth, on the noiseless event sequence): the bound to compare the estimator's variance
+with.
+
+What is approximate, and stated as such: ``s_i`` is held at the current estimate in each
+step (the dependence of the noise on ``g`` through ``V'`` is not differentiated); the
+density's Jacobian ``|V'(t_c)|`` enters the outlier weights only; the walk's reset noise
+is taken as independent per event; the prior on ``u`` is Gaussian, not uniform; the
+photoreceptor's state at the cycle start is the periodic steady state (two cycles
+integrated); the readout's queueing delays (the arbiter) and hot pixels are not modelled;
+crossings that the jitter clamps to the end of a dead time are treated as unclamped.
+
+Pixels without events carry no information: NaN, flag :data:`FLAG_NO_EVENTS`. Pixels
+whose estimate leaves the model's radiance range are flagged :data:`FLAG_OUT_OF_RANGE`
+and set to NaN too (the bound is printed in the log, not the image).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+
+from asynhdr.rig import Rig
+from asynhdr.sensor.params import SensorParams
+from asynhdr.sensor.photoreceptor import Lowpass, lowpass_rows, time_grid
+
+__all__ = [
+    "DEFAULT_DLOG",
+    "FLAG_NO_EVENTS",
+    "FLAG_OUT_OF_RANGE",
+    "MlModel",
+    "MlResult",
+    "estimate",
+    "fisher_information",
+    "group_by_pixel",
+    "ml_model",
+    "thresholds_prior",
+]
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_DLOG = 0.02
+"""Step (natural log of radiance) of the grid on which the photoreceptor output is
+tabulated for ``ml``. Linear interpolation between rows errs by at most
+``dlog^2 / 8 max|d^2 V / dg^2| <= dlog^2 / 32`` (5e-5 log units here), far below a
+threshold."""
+
+RANGE_MARGIN = 100.0
+"""The model's radiance range reaches this factor beyond ``L_const min(T2) / max(T1)`` and
+``L_const max(T2) / min(T1)``: pixels further out carry no usable timing."""
+
+FLAG_NO_EVENTS = 1
+"""Flag: the pixel fired no event in the window (no information): NaN."""
+FLAG_OUT_OF_RANGE = 2
+"""Flag: the estimate left the model's radiance range: NaN."""
+
+_MAX_ITER = 12
+_TOL_G = 1e-5
+_MAX_STEP_G = 1.0
+
+
+@dataclass(frozen=True, eq=False)
+class MlModel:
+    """Everything the estimator needs of the rig and the sensor, tabulated per whole µs of
+    the window.
+
+    Attributes
+    ----------
+    window_us : length of the window (µs from the cycle start) the tables cover.
+    mode : 0: the exact log irradiance (no photoreceptor low-pass); 1: tabulated low-pass.
+    g_lo, g_hi : the model's range of ``g = ln L``.
+    dead : True when the pixel has a dead time (latency or refractory > 0, or jitter):
+        the reference is taken at the end of each dead time; else it walks by ``c``.
+    reset_sigma, jitter_us, res_us : reset noise (log), jitter (µs), timestamp quantum (µs).
+    noise_rate_per_us : background events per pixel per µs (outlier rate).
+    exact : ``(8, W)`` float64 per-µs rows for mode 0: ``a1, b2, da1, db2`` at the crossing
+        time ``m + res/2 - latency`` and at the dead time's end ``m + res/2 + refractory``
+        (``a1 = k_lens T1``, ``b2 = k_lens L_const T2``, ``d`` per µs).
+    v0 : ``(a1, b2)`` at the cycle start (mode 0).
+    rows : ``(n_rows, K)`` float32 photoreceptor output per grid value
+        ``g_j = g0 + j dlog`` on the time grid (mode 1); ``rows0`` its value at 0.
+    locate : ``(4, W)`` float64 for mode 1: grid interval and fraction at the crossing
+        time and at the dead time's end; ``inv_h`` ``1 / (s[k+1] - s[k])``.
+    """
+
+    window_us: int
+    mode: int
+    g_lo: float
+    g_hi: float
+    dead: bool
+    reset_sigma: float
+    jitter_us: float
+    res_us: float
+    noise_rate_per_us: float
+    exact: np.ndarray
+    v0: tuple[float, float]
+    rows: np.ndarray
+    g0: float
+    dlog: float
+    locate: np.ndarray
+    inv_h: np.ndarray
+    description: str = ""
+
+    @property
+    def n_bytes(self) -> int:
+        return int(self.exact.nbytes + self.rows.nbytes + self.locate.nbytes)
+
+
+def _noise_rate_hz(sensor: SensorParams) -> float:
+    """Background events per pixel per second: leak plus shot noise at its mid rate."""
+    shot = sensor.shot_noise_rate_hz * 0.5 * (1.0 + sensor.shot_noise_bright_factor)
+    return float(sensor.leak_rate_hz + shot)
+
+
+def ml_model(rig: Rig, sensor: SensorParams, *, window_us: float | None = None,
+             dlog: float = DEFAULT_DLOG, g_range: tuple[float, float] | None = None,
+             dt_us: float | None = None) -> MlModel:
+    """Tabulate the forward model of ``rig`` and ``sensor`` over a window of the cycle.
+
+    ``window_us`` defaults to the ramp; ``g_range`` (``ln L`` bounds) to the rig's range
+    widened by :data:`RANGE_MARGIN`; ``dt_us`` (the low-pass grid) to the simulator's.
+    """
+    from asynhdr.sensor.photoreceptor import DEFAULT_DT_US
+
+    period = float(rig.period_us)
+    w_us = math.ceil(window_us if window_us is not None else rig.ramp_us)
+    w_us = max(1, min(w_us, int(rig.period_us)))
+    w1, w2 = rig.waveforms()
+    knots = np.union1d(w1.phase, w2.phase)
+    t1v, t2v = w1(knots), w2(knots)
+    if g_range is None:
+        lo = rig.l_const * float(t2v.min()) / float(t1v.max()) / RANGE_MARGIN
+        hi = rig.l_const * float(t2v.max()) / max(float(t1v.min()), 1e-12) * RANGE_MARGIN
+        g_range = (math.log(lo), math.log(hi))
+    g_lo, g_hi = float(g_range[0]), float(g_range[1])
+    if not g_hi > g_lo:
+        raise ValueError(f"ml: empty radiance range {g_range}")
+    res = float(sensor.timestamp_resolution_us)
+    lat = float(sensor.latency_us)
+    refr = float(sensor.refractory_us)
+    m = np.arange(w_us, dtype=np.float64)
+    tc = np.clip(m + 0.5 * res - lat, 0.0, period)
+    te = np.clip(m + 0.5 * res + refr, 0.0, period)
+    dead = lat > 0 or refr > 0 or sensor.jitter_sigma_us > 0
+    kl, lc = rig.k_lens, rig.l_const
+    ks = knots * period
+    a1k = kl * t1v
+    b2k = kl * lc * t2v
+    with np.errstate(divide="ignore", invalid="ignore"):
+        da1k = np.diff(a1k) / np.diff(ks)
+        db2k = np.diff(b2k) / np.diff(ks)
+
+    def slope(d: np.ndarray, t: np.ndarray) -> np.ndarray:
+        j = np.clip(np.searchsorted(ks, t, side="right") - 1, 0, d.size - 1)
+        return d[j]
+
+    exact = np.stack([np.interp(tc, ks, a1k), np.interp(tc, ks, b2k), slope(da1k, tc),
+                      slope(db2k, tc), np.interp(te, ks, a1k), np.interp(te, ks, b2k),
+                      slope(da1k, te), slope(db2k, te)])
+    v0 = (float(a1k[0]), float(b2k[0]))
+    common = dict(window_us=w_us, g_lo=g_lo, g_hi=g_hi, dead=dead,
+                  reset_sigma=float(sensor.reset_noise_sigma),
+                  jitter_us=float(sensor.jitter_sigma_us), res_us=res,
+                  noise_rate_per_us=_noise_rate_hz(sensor) * 1e-6, exact=exact, v0=v0)
+    if sensor.cutoff_hz <= 0:
+        return MlModel(mode=0, rows=np.zeros((2, 2), np.float32), g0=g_lo, dlog=1.0,
+                       locate=np.zeros((4, 1)), inv_h=np.zeros(1),
+                       description="exact log irradiance", **common)  # type: ignore[arg-type]
+    if not (dlog > 0 and math.isfinite(dlog)):
+        raise ValueError(f"ml: dlog must be positive, got {dlog}")
+    lp = Lowpass(sensor.tau_ref_us * (sensor.cutoff_irradiance + sensor.dark_irradiance),
+                 sensor.dark_irradiance, sensor.tau_max_us)
+    n_rows = math.ceil((g_hi - g_lo) / dlog) + 2
+    grid = np.exp(g_lo + dlog * np.arange(n_rows))
+    i_max = kl * (float(grid[-1]) * float(t1v.max()) + lc * float(t2v.max()))
+    tau_min = min(lp.tau_num / (i_max + lp.dark_irradiance), lp.tau_max_us)
+    s = time_grid(knots, t1v, t2v, period_us=period,
+                  dt_us=DEFAULT_DT_US if dt_us is None else dt_us, tau_min_us=tau_min)
+    u = s / period
+    a1 = kl * w1(u)
+    b2 = kl * lc * w2(u)
+    # the periodic steady state: one cycle from rest, then the cycle that is kept
+    y0 = np.log(a1[0] * grid + b2[0])
+    _, y_end = lowpass_rows(grid, a1, b2, s, y0, lp)
+    rows, _ = lowpass_rows(grid, a1, b2, s, y_end, lp)
+    kmax = s.size - 2
+
+    def loc(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        k = np.clip(np.searchsorted(s, t, side="right") - 1, 0, kmax)
+        f = np.clip((t - s[k]) / (s[k + 1] - s[k]), 0.0, 1.0)
+        return k.astype(np.float64), f
+
+    kc, fc = loc(tc)
+    ke, fe = loc(te)
+    rows32 = np.ascontiguousarray(rows, dtype=np.float32)
+    return MlModel(mode=1, rows=rows32, g0=g_lo, dlog=float(dlog),
+                   locate=np.stack([kc, fc, ke, fe]), inv_h=1.0 / np.diff(s),
+                   description=f"photoreceptor low-pass tabulated ({n_rows} radiances x "
+                   f"{s.size} times)", **common)  # type: ignore[arg-type]
+
+
+# ----------------------------------------------------------------------------- model values
+
+
+@nb.njit(cache=True, inline="always")
+def _eval(mode, g, m, end, exact, v0a, v0b, rows, g0, dlog, locate, inv_h):
+    """``(V, dV/dg, dV/dt)`` at whole µs slot ``m`` (``end``: the dead time's end; ``m < 0``:
+    the cycle start) for ``g = ln L``."""
+    if mode == 0:
+        e = math.exp(g)
+        if m < 0:
+            irr = v0a * e + v0b
+            return math.log(irr), v0a * e / irr, 0.0
+        o = 4 if end else 0
+        a = exact[o, m]
+        b = exact[o + 1, m]
+        irr = a * e + b
+        return math.log(irr), a * e / irr, (exact[o + 2, m] * e + exact[o + 3, m]) / irr
+    x = (g - g0) / dlog
+    nr = rows.shape[0]
+    j = int(math.floor(x))  # noqa: RUF046 (numba)
+    if j < 0:
+        j = 0
+    elif j > nr - 2:
+        j = nr - 2
+    w = x - j
+    if m < 0:
+        va = rows[j, 0]
+        vb = rows[j + 1, 0]
+        return va + w * (vb - va), (vb - va) / dlog, 0.0
+    o = 2 if end else 0
+    k = int(locate[o, m])
+    f = locate[o + 1, m]
+    ra0 = rows[j, k]
+    ra1 = rows[j, k + 1]
+    rb0 = rows[j + 1, k]
+    rb1 = rows[j + 1, k + 1]
+    va = ra0 + f * (ra1 - ra0)
+    vb = rb0 + f * (rb1 - rb0)
+    sa = (ra1 - ra0) * inv_h[k]
+    sb = (rb1 - rb0) * inv_h[k]
+    return va + w * (vb - va), (vb - va) / dlog, sa + w * (sb - sa)
+
+
+@nb.njit(cache=True, inline="always")
+def _moment(mode, g, t, p, lo, hi, dead, con, coff, u, exact, v0a, v0b, rows, g0, dlog,
+            locate, inv_h, wmax):
+    """``sum_i r_i(g)`` at fixed thresholds and ``u``: rises with ``g`` during a ramp."""
+    acc = 0.0
+    vs, _, _ = _eval(mode, g, -1, False, exact, v0a, v0b, rows, g0, dlog, locate, inv_h)
+    level = 0.0
+    prev = -1
+    for i in range(lo, hi):
+        m = t[i]
+        if m >= wmax:
+            m = wmax - 1
+        vc, _, _ = _eval(mode, g, m, False, exact, v0a, v0b, rows, g0, dlog, locate, inv_h)
+        step = con if p[i] > 0 else -coff
+        if dead:
+            if prev < 0:
+                ref = vs + u
+            else:
+                ref, _, _ = _eval(mode, g, prev, True, exact, v0a, v0b, rows, g0, dlog,
+                                  locate, inv_h)
+            acc += vc - ref - step
+            prev = m
+        else:
+            level += step
+            acc += vc - vs - u - level
+    return acc
+
+
+@nb.njit(cache=True)
+def _solve4(h, b, x):
+    """Solve the symmetric positive-definite ``h x = b`` (4x4, Cholesky); also returns
+    ``(h^-1)[0, 0]``. False when ``h`` is not positive definite."""
+    lmat = np.zeros((4, 4))
+    for i in range(4):
+        for j in range(i + 1):
+            s = h[i, j]
+            for k in range(j):
+                s -= lmat[i, k] * lmat[j, k]
+            if i == j:
+                if s <= 0.0:
+                    return False, 0.0
+                lmat[i, i] = math.sqrt(s)
+            else:
+                lmat[i, j] = s / lmat[j, j]
+    y = np.zeros(4)
+    for i in range(4):
+        s = b[i]
+        for k in range(i):
+            s -= lmat[i, k] * y[k]
+        y[i] = s / lmat[i, i]
+    for i in range(3, -1, -1):
+        s = y[i]
+        for k in range(i + 1, 4):
+            s -= lmat[k, i] * x[k]
+        x[i] = s / lmat[i, i]
+    # (h^-1)[0,0] = || L^-1 e_0 ||^2
+    z = np.zeros(4)
+    for i in range(4):
+        s = 1.0 if i == 0 else 0.0
+        for k in range(i):
+            s -= lmat[i, k] * z[k]
+        z[i] = s / lmat[i, i]
+    v00 = 0.0
+    for i in range(4):
+        v00 += z[i] * z[i]
+    return True, v00
+
+
+@nb.njit(cache=True, inline="always")
+def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
+            rows, g0, dlog, locate, inv_h, wmax, h, b):
+    """Accumulate the Gauss-Newton normal equations of the events ``lo..hi`` at
+    ``theta = (g, u, c_on, c_off)`` into ``h`` and ``b`` (``b = -sum w r J``)."""
+    vs, dgs, _ = _eval(mode, g, -1, False, exact, v0a, v0b, rows, g0, dlog, locate, inv_h)
+    n_on = 0.0
+    n_off = 0.0
+    prev = -1
+    k_ev = 0
+    for i in range(lo, hi):
+        m = t[i]
+        if m >= wmax:
+            m = wmax - 1
+        vc, dgc, dtc = _eval(mode, g, m, False, exact, v0a, v0b, rows, g0, dlog, locate,
+                             inv_h)
+        k_ev += 1
+        j0 = 0.0
+        j1 = 0.0
+        j2 = 0.0
+        j3 = 0.0
+        if dead:
+            if prev < 0:
+                ref = vs + uu
+                dref = dgs
+                j1 = -1.0
+                var = dtc * dtc * tq2
+            else:
+                ref, dref, dte = _eval(mode, g, prev, True, exact, v0a, v0b, rows, g0, dlog,
+                                       locate, inv_h)
+                var = sr2 + dtc * dtc * tq2 + dte * dte * eq2
+            if p[i] > 0:
+                r = vc - ref - con
+                j2 = -1.0
+            else:
+                r = vc - ref + coff
+                j3 = 1.0
+            j0 = dgc - dref
+            prev = m
+        else:
+            if p[i] > 0:
+                n_on += 1.0
+            else:
+                n_off += 1.0
+            r = vc - vs - uu - (con * n_on - coff * n_off)
+            j0 = dgc - dgs
+            j1 = -1.0
+            j2 = -n_on
+            j3 = n_off
+            var = sr2 * k_ev + dtc * dtc * tq2
+        if var < 1e-12:
+            var = 1e-12
+        w = 1.0 / var
+        if lam > 0.0:
+            sd = math.sqrt(var)
+            z = r / sd
+            f = math.exp(-0.5 * z * z) * abs(dtc) / (sd * 2.5066282746310002)
+            w *= f / (f + lam)
+        jj = (j0, j1, j2, j3)
+        for a in range(4):
+            b[a] -= w * r * jj[a]
+            for c in range(a + 1):
+                h[a, c] += w * jj[a] * jj[c]
+
+
+@nb.njit(cache=True, parallel=True)
+def _estimate_kernel(off, t, p, pix_list, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
+                     rows, g0, dlog, locate, inv_h, wmax, g_lo, g_hi, con0, coff0, scon,
+                     scoff, g_prior, sg_prior, fixed, out_g, out_sd, out_con, out_coff,
+                     out_flag):
+    """Fit every listed pixel (module docstring). ``fixed``: evaluate the information at
+    ``g_prior`` with no fit (the bound); ``sg_prior > 0``: a Gaussian prior on ``g``."""
+    for q in nb.prange(pix_list.shape[0]):
+        px = pix_list[q]
+        lo = off[px]
+        hi = off[px + 1]
+        if hi == lo:
+            out_g[px] = np.nan
+            out_sd[px] = np.nan
+            out_con[px] = con0[px]
+            out_coff[px] = coff0[px]
+            out_flag[px] = 1
+            continue
+        c1 = con0[px]
+        c2 = coff0[px]
+        su = (c1 + c2) / math.sqrt(12.0)
+        mu_u = 0.5 * (c2 - c1)
+        s1 = max(scon[px], 1e-6)
+        s2 = max(scoff[px], 1e-6)
+        flag = 0
+        if fixed:
+            g = g_prior[px]
+        elif sg_prior[px] > 0.0 and sg_prior[px] < 1e-3:
+            g = g_prior[px]
+        else:
+            # bracketing root search on the moment sum (Illinois false position)
+            a = g_lo
+            bb = g_hi
+            fa = _moment(mode, a, t, p, lo, hi, dead, c1, c2, mu_u, exact, v0a, v0b, rows,
+                         g0, dlog, locate, inv_h, wmax)
+            fb = _moment(mode, bb, t, p, lo, hi, dead, c1, c2, mu_u, exact, v0a, v0b, rows,
+                         g0, dlog, locate, inv_h, wmax)
+            if fa >= 0.0:
+                g = a
+                flag = 2
+            elif fb <= 0.0:
+                g = bb
+                flag = 2
+            else:
+                side = 0
+                g = 0.5 * (a + bb)
+                for _ in range(60):
+                    g = (a * fb - bb * fa) / (fb - fa)
+                    fg = _moment(mode, g, t, p, lo, hi, dead, c1, c2, mu_u, exact, v0a, v0b,
+                                 rows, g0, dlog, locate, inv_h, wmax)
+                    if fg > 0.0:
+                        bb = g
+                        fb = fg
+                        if side == -1:
+                            fa *= 0.5
+                        side = -1
+                    else:
+                        a = g
+                        fa = fg
+                        if side == 1:
+                            fb *= 0.5
+                        side = 1
+                    if bb - a < 1e-3:
+                        break
+        uu = mu_u
+        cc1 = c1
+        cc2 = c2
+        h = np.zeros((4, 4))
+        bvec = np.zeros(4)
+        x = np.zeros(4)
+        v00 = np.nan
+        n_iter = 0 if fixed else _MAX_ITER
+        for it in range(n_iter + 1):
+            h[:, :] = 0.0
+            bvec[:] = 0.0
+            _normal(mode, g, uu, cc1, cc2, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exact,
+                    v0a, v0b, rows, g0, dlog, locate, inv_h, wmax, h, bvec)
+            # priors
+            h[1, 1] += 1.0 / (su * su)
+            bvec[1] += (mu_u - uu) / (su * su)
+            h[2, 2] += 1.0 / (s1 * s1)
+            bvec[2] += (c1 - cc1) / (s1 * s1)
+            h[3, 3] += 1.0 / (s2 * s2)
+            bvec[3] += (c2 - cc2) / (s2 * s2)
+            if sg_prior[px] > 0.0:
+                h[0, 0] += 1.0 / (sg_prior[px] * sg_prior[px])
+                bvec[0] += (g_prior[px] - g) / (sg_prior[px] * sg_prior[px])
+            for a2 in range(4):
+                for c in range(a2 + 1, 4):
+                    h[a2, c] = h[c, a2]
+            h[0, 0] += 1e-12
+            ok, v00 = _solve4(h, bvec, x)
+            if not ok:
+                v00 = np.nan
+                break
+            if it == n_iter:
+                break
+            dg = x[0]
+            if dg > _MAX_STEP_G:
+                dg = _MAX_STEP_G
+            elif dg < -_MAX_STEP_G:
+                dg = -_MAX_STEP_G
+            gn = g + dg
+            if gn < g_lo:
+                gn = g_lo
+            elif gn > g_hi:
+                gn = g_hi
+            uu += x[1]
+            cc1 += x[2]
+            cc2 += x[3]
+            if cc1 < 1e-3:
+                cc1 = 1e-3
+            if cc2 < 1e-3:
+                cc2 = 1e-3
+            done = abs(gn - g) < _TOL_G
+            g = gn
+            if done:
+                h[:, :] = 0.0
+                bvec[:] = 0.0
+                _normal(mode, g, uu, cc1, cc2, t, p, lo, hi, dead, sr2, tq2, eq2, lam,
+                        exact, v0a, v0b, rows, g0, dlog, locate, inv_h, wmax, h, bvec)
+                h[1, 1] += 1.0 / (su * su)
+                h[2, 2] += 1.0 / (s1 * s1)
+                h[3, 3] += 1.0 / (s2 * s2)
+                if sg_prior[px] > 0.0:
+                    h[0, 0] += 1.0 / (sg_prior[px] * sg_prior[px])
+                for a2 in range(4):
+                    for c in range(a2 + 1, 4):
+                        h[a2, c] = h[c, a2]
+                h[0, 0] += 1e-12
+                ok, v00 = _solve4(h, bvec, x)
+                if not ok:
+                    v00 = np.nan
+                break
+        if not fixed and (g <= g_lo + 1e-9 or g >= g_hi - 1e-9):
+            flag = 2
+        out_g[px] = g
+        out_sd[px] = math.sqrt(v00) if v00 == v00 and v00 >= 0.0 else np.nan
+        out_con[px] = cc1
+        out_coff[px] = cc2
+        out_flag[px] = flag
+
+
+# ----------------------------------------------------------------------------- grouping
+
+
+@nb.njit(cache=True)
+def _group_kernel(x, y, p, t, t0, t1, width, npx, off, out_t, out_p):
+    """Counting sort of the events with ``t0 <= t < t1`` by pixel (stable: time order
+    kept). ``off`` gets the per-pixel offsets; returns the number kept."""
+    cnt = np.zeros(npx + 1, np.int64)
+    n = 0
+    for i in range(t.shape[0]):
+        if t[i] >= t0 and t[i] < t1:
+            cnt[np.int64(y[i]) * width + x[i] + 1] += 1
+            n += 1
+    for j in range(npx):
+        cnt[j + 1] += cnt[j]
+    for j in range(npx + 1):
+        off[j] = cnt[j]
+    for i in range(t.shape[0]):
+        ti = t[i]
+        if ti >= t0 and ti < t1:
+            j = np.int64(y[i]) * width + x[i]
+            d = cnt[j]
+            out_t[d] = ti - t0
+            out_p[d] = p[i]
+            cnt[j] = d + 1
+    return n
+
+
+def group_by_pixel(events: np.ndarray, *, width: int, height: int, start_us: int,
+                   window_us: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The events of ``[start_us, start_us + window_us)`` grouped by pixel (time order kept
+    within a pixel): ``(offsets (n_pixels + 1,), t (µs from start_us, int64), p (int8))``."""
+    npx = width * height
+    off = np.empty(npx + 1, np.int64)
+    t = events["t"]
+    sel = int(np.count_nonzero((t >= start_us) & (t < start_us + window_us))) if t.size else 0
+    out_t = np.empty(sel, np.int64)
+    out_p = np.empty(sel, np.int8)
+    _group_kernel(events["x"], events["y"], events["p"], t, np.int64(start_us),
+                  np.int64(start_us + window_us), np.int64(width), np.int64(npx), off, out_t,
+                  out_p)
+    return off, out_t, out_p
+
+
+# ----------------------------------------------------------------------------- public
+
+
+@dataclass(frozen=True, eq=False)
+class MlResult:
+    """What :func:`estimate` returns, per cycle, ``(n_cycles, height, width)``.
+
+    Attributes
+    ----------
+    radiance : float32 ``L = exp(g_hat)`` in the unit of ``L_const``; NaN where flagged.
+    sigma_log : float32 standard deviation of ``ln L`` (the bound at the estimate).
+    flags : uint8, 0 (estimated), :data:`FLAG_NO_EVENTS`, :data:`FLAG_OUT_OF_RANGE`.
+    c_on, c_off : float32 the thresholds fitted with the radiance (their priors where no
+        event constrains them).
+    n_events : int32 events used per pixel.
+    """
+
+    radiance: np.ndarray
+    sigma_log: np.ndarray
+    flags: np.ndarray
+    c_on: np.ndarray
+    c_off: np.ndarray
+    n_events: np.ndarray
+
+    @property
+    def mask(self) -> np.ndarray:
+        """True where the pixel has an estimate."""
+        return self.flags == 0
+
+
+def thresholds_prior(sensor: SensorParams, *, width: int, height: int,
+                     c_on: np.ndarray | None = None, c_off: np.ndarray | None = None,
+                     sigma: float | np.ndarray | None = None
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per-pixel threshold priors ``(c_on, c_off, sigma_on, sigma_off)`` (flat arrays):
+    the calibrated maps when given (``sigma`` their error, default 0.005), else the
+    sensor's nominal thresholds with its mismatch ``threshold_sigma`` as the spread."""
+    npx = width * height
+    if c_on is None or c_off is None:
+        on = np.full(npx, sensor.threshold_on)
+        off = np.full(npx, sensor.threshold_off)
+        s = np.full(npx, max(sensor.threshold_sigma, 0.0))
+        return on, off, s, s.copy()
+    on = np.asarray(c_on, dtype=np.float64).ravel()
+    off = np.asarray(c_off, dtype=np.float64).ravel()
+    if on.size != npx or off.size != npx:
+        raise ValueError(f"threshold maps must have {height}x{width} pixels, got {on.size} "
+                         f"and {off.size}")
+    sg = 0.005 if sigma is None else sigma
+    s = np.broadcast_to(np.asarray(sg, dtype=np.float64), (npx,)).astype(np.float64)
+    return on, off, s, s.copy()
+
+
+def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int,
+         priors: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+         g_prior: np.ndarray | None, sg_prior: np.ndarray | None, fixed: bool
+         ) -> tuple[np.ndarray, ...]:
+    con, coff, scon, scoff = priors
+    counts = np.diff(off)
+    pix_list = np.flatnonzero(counts >= 0).astype(np.int64)
+    # big pixels first spread the work between threads
+    out_g = np.empty(npx)
+    out_sd = np.empty(npx)
+    out_con = np.empty(npx)
+    out_coff = np.empty(npx)
+    out_flag = np.zeros(npx, np.uint8)
+    gp = np.zeros(npx) if g_prior is None else np.ascontiguousarray(g_prior, dtype=np.float64)
+    sp = np.zeros(npx) if sg_prior is None else np.ascontiguousarray(sg_prior,
+                                                                      dtype=np.float64)
+    tq2 = model.jitter_us ** 2 + model.res_us ** 2 / 12.0
+    eq2 = model.res_us ** 2 / 12.0 + (model.jitter_us ** 2 if model.dead else 0.0)
+    _estimate_kernel(off, t, p, pix_list, model.mode, model.dead, model.reset_sigma ** 2, tq2,
+                     eq2, model.noise_rate_per_us, model.exact, model.v0[0], model.v0[1],
+                     model.rows, model.g0, model.dlog, model.locate, model.inv_h,
+                     np.int64(model.window_us), model.g_lo, model.g_hi,
+                     np.ascontiguousarray(con), np.ascontiguousarray(coff),
+                     np.ascontiguousarray(scon), np.ascontiguousarray(scoff), gp, sp, fixed,
+                     out_g, out_sd, out_con, out_coff, out_flag)
+    return out_g, out_sd, out_con, out_coff, out_flag, counts
+
+
+def estimate(
+    events: np.ndarray,
+    *,
+    width: int,
+    height: int,
+    starts_us: np.ndarray,
+    model: MlModel,
+    priors: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    g_prior: np.ndarray | None = None,
+    g_prior_sigma: np.ndarray | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> MlResult:
+    """Maximum-likelihood radiance per pixel and cycle.
+
+    Parameters
+    ----------
+    events : time-sorted events (``EVENT_DTYPE``).
+    starts_us : cycle starts (µs); each cycle uses ``[start, start + model.window_us)``.
+    model : :func:`ml_model` of the rig and the sensor.
+    priors : :func:`thresholds_prior`.
+    g_prior, g_prior_sigma : optional Gaussian prior on ``ln L`` per pixel (flat): a known
+        flat field for calibration (then the thresholds are what is estimated).
+    progress : ``progress(done_cycles, n_cycles)``.
+    """
+    starts = np.asarray(starts_us, dtype=np.int64)
+    npx = width * height
+    n = starts.size
+    shape = (n, height, width)
+    rad = np.empty(shape, np.float32)
+    sd = np.empty(shape, np.float32)
+    flags = np.empty(shape, np.uint8)
+    con = np.empty(shape, np.float32)
+    coff = np.empty(shape, np.float32)
+    nev = np.empty(shape, np.int32)
+    for c in range(n):
+        off, t, p = group_by_pixel(events, width=width, height=height,
+                                   start_us=int(starts[c]), window_us=model.window_us)
+        g, s, c1, c2, fl, counts = _run(model, off, t, p, npx, priors, g_prior,
+                                        g_prior_sigma, False)
+        bad = fl != 0
+        with np.errstate(over="ignore"):
+            r = np.exp(g)
+        r[bad] = np.nan
+        s[bad] = np.nan
+        rad[c] = r.reshape(height, width)
+        sd[c] = s.reshape(height, width)
+        flags[c] = fl.reshape(height, width)
+        con[c] = c1.reshape(height, width)
+        coff[c] = c2.reshape(height, width)
+        nev[c] = counts.reshape(height, width)
+        if progress is not None:
+            progress(c + 1, n)
+    n_none = int(np.count_nonzero(flags == FLAG_NO_EVENTS))
+    n_out = int(np.count_nonzero(flags == FLAG_OUT_OF_RANGE))
+    if n_none or n_out:
+        logger.info("ml: %d pixel-cycles without events, %d outside the model's range "
+                    "(%.3g to %.3g): NaN", n_none, n_out, math.exp(model.g_lo),
+                    math.exp(model.g_hi))
+    return MlResult(radiance=rad, sigma_log=sd, flags=flags, c_on=con, c_off=coff,
+                    n_events=nev)
+
+
+def fisher_information(
+    events: np.ndarray,
+    *,
+    width: int,
+    height: int,
+    start_us: int,
+    model: MlModel,
+    priors: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    log_radiance: np.ndarray,
+) -> np.ndarray:
+    """The model's Cramér-Rao bound on ``ln L`` per pixel, ``(height, width)`` float64
+    standard deviations: the information matrix of :func:`estimate` evaluated at the
+    given ``log_radiance`` (the truth) over these events (for the expected bound: the
+    noiseless events of that radiance), thresholds and ``u`` marginalised. NaN where the
+    pixel has no event."""
+    off, t, p = group_by_pixel(events, width=width, height=height, start_us=int(start_us),
+                               window_us=model.window_us)
+    g = np.ascontiguousarray(np.asarray(log_radiance, dtype=np.float64).ravel())
+    _, sd, _, _, fl, _ = _run(model, off, t, p, width * height, priors, g, None, True)
+    sd[fl == FLAG_NO_EVENTS] = np.nan
+    return sd.reshape(height, width)
