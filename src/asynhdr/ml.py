@@ -82,7 +82,7 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-DEFAULT_DLOG = 0.02
+DEFAULT_DLOG = 0.04
 """Step (natural log of radiance) of the grid on which the photoreceptor output is
 tabulated for ``ml``. Linear interpolation between rows errs by at most
 ``dlog^2 / 8 max|d^2 V / dg^2| <= dlog^2 / 32`` (5e-5 log units here), far below a
@@ -93,13 +93,17 @@ RANGE_MARGIN = 100.0
 ``L_const max(T2) / min(T1)``: pixels further out carry no usable timing."""
 
 FLAG_NO_EVENTS = 1
-"""Flag: the pixel fired no event in the window (no information): NaN."""
+"""Flag: the pixel fired fewer than ``min_events`` events in the window (two by default:
+the first event's reference is unknown, so one event only bounds the radiance): NaN."""
 FLAG_OUT_OF_RANGE = 2
 """Flag: the estimate left the model's radiance range: NaN."""
 
 _MAX_ITER = 12
-_TOL_G = 1e-5
+_TOL_G = 1e-4
 _MAX_STEP_G = 1.0
+_BLOCK = 256
+_CHI2_RESCUE = 4.0
+_SCAN_STEP = 0.2
 
 
 @dataclass(frozen=True, eq=False)
@@ -120,10 +124,12 @@ class MlModel:
         time ``m + res/2 - latency`` and at the dead time's end ``m + res/2 + refractory``
         (``a1 = k_lens T1``, ``b2 = k_lens L_const T2``, ``d`` per µs).
     v0 : ``(a1, b2)`` at the cycle start (mode 0).
-    rows : ``(n_rows, K)`` float32 photoreceptor output per grid value
-        ``g_j = g0 + j dlog`` on the time grid (mode 1); ``rows0`` its value at 0.
+    rows : ``(K, n_rows, 2)`` float32 photoreceptor output at grid time ``s_k`` for grid
+        value ``g_j = g0 + j dlog``, and its increment to ``s_{k+1}`` (mode 1).
     locate : ``(4, W)`` float64 for mode 1: grid interval and fraction at the crossing
         time and at the dead time's end; ``inv_h`` ``1 / (s[k+1] - s[k])``.
+    net_g, net_v : the model's net change of ``V`` over the window, ``net_v``, at
+        ``g = net_g`` (made non-decreasing): the fit's starting point.
     """
 
     window_us: int
@@ -142,6 +148,8 @@ class MlModel:
     dlog: float
     locate: np.ndarray
     inv_h: np.ndarray
+    net_g: np.ndarray
+    net_v: np.ndarray
     description: str = ""
 
     @property
@@ -153,6 +161,11 @@ def _noise_rate_hz(sensor: SensorParams) -> float:
     """Background events per pixel per second: leak plus shot noise at its mid rate."""
     shot = sensor.shot_noise_rate_hz * 0.5 * (1.0 + sensor.shot_noise_bright_factor)
     return float(sensor.leak_rate_hz + shot)
+
+
+def _rising(v: np.ndarray) -> np.ndarray:
+    """``v`` made strictly increasing (a running maximum plus a tiny ramp)."""
+    return np.maximum.accumulate(np.asarray(v, dtype=np.float64)) + 1e-9 * np.arange(v.size)
 
 
 def ml_model(rig: Rig, sensor: SensorParams, *, window_us: float | None = None,
@@ -206,9 +219,13 @@ def ml_model(rig: Rig, sensor: SensorParams, *, window_us: float | None = None,
                   jitter_us=float(sensor.jitter_sigma_us), res_us=res,
                   noise_rate_per_us=_noise_rate_hz(sensor) * 1e-6, exact=exact, v0=v0)
     if sensor.cutoff_hz <= 0:
-        return MlModel(mode=0, rows=np.zeros((2, 2), np.float32), g0=g_lo, dlog=1.0,
-                       locate=np.zeros((4, 1)), inv_h=np.zeros(1),
-                       description="exact log irradiance", **common)  # type: ignore[arg-type]
+        ng = np.linspace(g_lo, g_hi, 512)
+        e = np.exp(ng)
+        nv = np.log(exact[0, -1] * e + exact[1, -1]) - np.log(v0[0] * e + v0[1])
+        return MlModel(mode=0, rows=np.zeros((2, 2, 2), np.float32), g0=g_lo, dlog=1.0,
+                       locate=np.zeros((4, 1)), inv_h=np.zeros(1), net_g=ng,
+                       net_v=_rising(nv), description="exact log irradiance",
+                       **common)  # type: ignore[arg-type]
     if not (dlog > 0 and math.isfinite(dlog)):
         raise ValueError(f"ml: dlog must be positive, got {dlog}")
     lp = Lowpass(sensor.tau_ref_us * (sensor.cutoff_irradiance + sensor.dark_irradiance),
@@ -235,9 +252,17 @@ def ml_model(rig: Rig, sensor: SensorParams, *, window_us: float | None = None,
 
     kc, fc = loc(tc)
     ke, fe = loc(te)
-    rows32 = np.ascontiguousarray(rows, dtype=np.float32)
-    return MlModel(mode=1, rows=rows32, g0=g_lo, dlog=float(dlog),
+    # time-major, value and increment to the next grid time side by side: one evaluation
+    # reads 16 neighbouring bytes
+    tab = np.empty((s.size, n_rows, 2), dtype=np.float32)
+    tab[:, :, 0] = rows.T
+    tab[:-1, :, 1] = np.diff(rows, axis=1).T
+    tab[-1, :, 1] = 0.0
+    k_end = int(kc[-1])
+    nv = (rows[:, k_end] + fc[-1] * (rows[:, k_end + 1] - rows[:, k_end])) - rows[:, 0]
+    return MlModel(mode=1, rows=tab, g0=g_lo, dlog=float(dlog),
                    locate=np.stack([kc, fc, ke, fe]), inv_h=1.0 / np.diff(s),
+                   net_g=g_lo + dlog * np.arange(n_rows), net_v=_rising(nv),
                    description=f"photoreceptor low-pass tabulated ({n_rows} radiances x "
                    f"{s.size} times)", **common)  # type: ignore[arg-type]
 
@@ -260,7 +285,7 @@ def _eval(mode, g, m, end, exact, v0a, v0b, rows, g0, dlog, locate, inv_h):
         irr = a * e + b
         return math.log(irr), a * e / irr, (exact[o + 2, m] * e + exact[o + 3, m]) / irr
     x = (g - g0) / dlog
-    nr = rows.shape[0]
+    nr = rows.shape[1]
     j = int(math.floor(x))  # noqa: RUF046 (numba)
     if j < 0:
         j = 0
@@ -268,27 +293,25 @@ def _eval(mode, g, m, end, exact, v0a, v0b, rows, g0, dlog, locate, inv_h):
         j = nr - 2
     w = x - j
     if m < 0:
-        va = rows[j, 0]
-        vb = rows[j + 1, 0]
+        va = rows[0, j, 0]
+        vb = rows[0, j + 1, 0]
         return va + w * (vb - va), (vb - va) / dlog, 0.0
     o = 2 if end else 0
     k = int(locate[o, m])
     f = locate[o + 1, m]
-    ra0 = rows[j, k]
-    ra1 = rows[j, k + 1]
-    rb0 = rows[j + 1, k]
-    rb1 = rows[j + 1, k + 1]
-    va = ra0 + f * (ra1 - ra0)
-    vb = rb0 + f * (rb1 - rb0)
-    sa = (ra1 - ra0) * inv_h[k]
-    sb = (rb1 - rb0) * inv_h[k]
-    return va + w * (vb - va), (vb - va) / dlog, sa + w * (sb - sa)
+    da = rows[k, j, 1]
+    db = rows[k, j + 1, 1]
+    va = rows[k, j, 0] + f * da
+    vb = rows[k, j + 1, 0] + f * db
+    return va + w * (vb - va), (vb - va) / dlog, (da + w * (db - da)) * inv_h[k]
 
 
 @nb.njit(cache=True, inline="always")
 def _moment(mode, g, t, p, lo, hi, dead, con, coff, u, exact, v0a, v0b, rows, g0, dlog,
             locate, inv_h, wmax):
-    """``sum_i r_i(g)`` at fixed thresholds and ``u``: rises with ``g`` during a ramp."""
+    """``sum_i r_i(g)`` at fixed thresholds and ``u``: rises with ``g`` during a ramp. With a
+    dead time the first event is left out (its reference, ``u``, is unknown), unless it
+    is the only one."""
     acc = 0.0
     vs, _, _ = _eval(mode, g, -1, False, exact, v0a, v0b, rows, g0, dlog, locate, inv_h)
     level = 0.0
@@ -301,11 +324,12 @@ def _moment(mode, g, t, p, lo, hi, dead, con, coff, u, exact, v0a, v0b, rows, g0
         step = con if p[i] > 0 else -coff
         if dead:
             if prev < 0:
-                ref = vs + u
+                if hi - lo == 1:
+                    acc += vc - vs - u - step
             else:
                 ref, _, _ = _eval(mode, g, prev, True, exact, v0a, v0b, rows, g0, dlog,
                                   locate, inv_h)
-            acc += vc - ref - step
+                acc += vc - ref - step
             prev = m
         else:
             level += step
@@ -313,11 +337,11 @@ def _moment(mode, g, t, p, lo, hi, dead, con, coff, u, exact, v0a, v0b, rows, g0
     return acc
 
 
-@nb.njit(cache=True)
-def _solve4(h, b, x):
-    """Solve the symmetric positive-definite ``h x = b`` (4x4, Cholesky); also returns
-    ``(h^-1)[0, 0]``. False when ``h`` is not positive definite."""
-    lmat = np.zeros((4, 4))
+@nb.njit(cache=True, inline="always")
+def _solve4(h, b, x, lmat, y, z):
+    """Solve the symmetric positive-definite ``h x = b`` (4x4, Cholesky; ``lmat``, ``y``,
+    ``z`` are work space); also returns ``(h^-1)[0, 0]``. False when ``h`` is not positive
+    definite."""
     for i in range(4):
         for j in range(i + 1):
             s = h[i, j]
@@ -329,7 +353,6 @@ def _solve4(h, b, x):
                 lmat[i, i] = math.sqrt(s)
             else:
                 lmat[i, j] = s / lmat[j, j]
-    y = np.zeros(4)
     for i in range(4):
         s = b[i]
         for k in range(i):
@@ -341,7 +364,6 @@ def _solve4(h, b, x):
             s -= lmat[k, i] * x[k]
         x[i] = s / lmat[i, i]
     # (h^-1)[0,0] = || L^-1 e_0 ||^2
-    z = np.zeros(4)
     for i in range(4):
         s = 1.0 if i == 0 else 0.0
         for k in range(i):
@@ -357,7 +379,9 @@ def _solve4(h, b, x):
 def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
             rows, g0, dlog, locate, inv_h, wmax, h, b):
     """Accumulate the Gauss-Newton normal equations of the events ``lo..hi`` at
-    ``theta = (g, u, c_on, c_off)`` into ``h`` and ``b`` (``b = -sum w r J``)."""
+    ``theta = (g, u, c_on, c_off)`` into ``h`` and ``b`` (``b = -sum w r J``); returns
+    ``chi2 = sum w r^2``."""
+    chi2 = 0.0
     vs, dgs, _ = _eval(mode, g, -1, False, exact, v0a, v0b, rows, g0, dlog, locate, inv_h)
     n_on = 0.0
     n_off = 0.0
@@ -411,154 +435,217 @@ def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exac
             z = r / sd
             f = math.exp(-0.5 * z * z) * abs(dtc) / (sd * 2.5066282746310002)
             w *= f / (f + lam)
-        jj = (j0, j1, j2, j3)
-        for a in range(4):
-            b[a] -= w * r * jj[a]
-            for c in range(a + 1):
-                h[a, c] += w * jj[a] * jj[c]
+        wr = w * r
+        chi2 += wr * r
+        b[0] -= wr * j0
+        b[1] -= wr * j1
+        b[2] -= wr * j2
+        b[3] -= wr * j3
+        w0 = w * j0
+        h[0, 0] += w0 * j0
+        h[1, 0] += w0 * j1
+        h[2, 0] += w0 * j2
+        h[3, 0] += w0 * j3
+        w1 = w * j1
+        h[1, 1] += w1 * j1
+        h[2, 1] += w1 * j2
+        h[3, 1] += w1 * j3
+        w2 = w * j2
+        h[2, 2] += w2 * j2
+        h[3, 2] += w2 * j3
+        h[3, 3] += w * j3 * j3
+    return chi2
 
 
-@nb.njit(cache=True, parallel=True)
-def _estimate_kernel(off, t, p, pix_list, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
-                     rows, g0, dlog, locate, inv_h, wmax, g_lo, g_hi, con0, coff0, scon,
-                     scoff, g_prior, sg_prior, fixed, out_g, out_sd, out_con, out_coff,
-                     out_flag):
-    """Fit every listed pixel (module docstring). ``fixed``: evaluate the information at
-    ``g_prior`` with no fit (the bound); ``sg_prior > 0``: a Gaussian prior on ``g``."""
-    for q in nb.prange(pix_list.shape[0]):
-        px = pix_list[q]
-        lo = off[px]
-        hi = off[px + 1]
-        if hi == lo:
-            out_g[px] = np.nan
-            out_sd[px] = np.nan
-            out_con[px] = con0[px]
-            out_coff[px] = coff0[px]
-            out_flag[px] = 1
-            continue
-        c1 = con0[px]
-        c2 = coff0[px]
-        su = (c1 + c2) / math.sqrt(12.0)
-        mu_u = 0.5 * (c2 - c1)
-        s1 = max(scon[px], 1e-6)
-        s2 = max(scoff[px], 1e-6)
-        flag = 0
-        if fixed:
-            g = g_prior[px]
-        elif sg_prior[px] > 0.0 and sg_prior[px] < 1e-3:
-            g = g_prior[px]
+@nb.njit(cache=True, inline="always")
+def _initial(net, net_g, net_v):
+    """``g`` where the model's net level change over the window, ``net_v`` (rising along
+    ``net_g``), equals ``net`` (linear interpolation, clamped)."""
+    n = net_g.shape[0]
+    if net <= net_v[0]:
+        return net_g[0]
+    if net >= net_v[n - 1]:
+        return net_g[n - 1]
+    lo = 0
+    hi = n - 1
+    while hi - lo > 1:
+        mid = (lo + hi) >> 1
+        if net_v[mid] <= net:
+            lo = mid
         else:
-            # bracketing root search on the moment sum (Illinois false position)
-            a = g_lo
-            bb = g_hi
+            hi = mid
+    d = net_v[hi] - net_v[lo]
+    f = (net - net_v[lo]) / d if d > 0.0 else 0.5
+    return net_g[lo] + f * (net_g[hi] - net_g[lo])
+
+
+@nb.njit(cache=True)
+def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
+               dlog, locate, inv_h, wmax, g_lo, g_hi, net_g, net_v, c1, c2, s1, s2, gp, sgp,
+               fixed, h, bvec, x, lmat, wy, wz, out):
+    """One pixel (module docstring). Writes ``(g, sd, c_on, c_off, flag)`` into ``out``."""
+    su = (c1 + c2) / math.sqrt(12.0)
+    mu_u = 0.5 * (c2 - c1)
+    flag = 0.0
+    if fixed or (0.0 < sgp < 1e-3):
+        g = gp
+    else:
+        # start: where the model's net level change matches the events'; then a bracket
+        # around it, widened until the moment sum changes sign, and false position
+        net = 0.0
+        for i in range(lo, hi):
+            net += c1 if p[i] > 0 else -c2
+        g = _initial(net, net_g, net_v)
+        width = 0.25
+        a = max(g - width, g_lo)
+        bb = min(g + width, g_hi)
+        fa = _moment(mode, a, t, p, lo, hi, dead, c1, c2, mu_u, exact, v0a, v0b, rows, g0,
+                     dlog, locate, inv_h, wmax)
+        fb = _moment(mode, bb, t, p, lo, hi, dead, c1, c2, mu_u, exact, v0a, v0b, rows, g0,
+                     dlog, locate, inv_h, wmax)
+        while fa > 0.0 and a > g_lo:
+            bb = a
+            fb = fa
+            width *= 2.0
+            a = max(a - width, g_lo)
             fa = _moment(mode, a, t, p, lo, hi, dead, c1, c2, mu_u, exact, v0a, v0b, rows,
                          g0, dlog, locate, inv_h, wmax)
+        while fb < 0.0 and bb < g_hi:
+            a = bb
+            fa = fb
+            width *= 2.0
+            bb = min(bb + width, g_hi)
             fb = _moment(mode, bb, t, p, lo, hi, dead, c1, c2, mu_u, exact, v0a, v0b, rows,
                          g0, dlog, locate, inv_h, wmax)
-            if fa >= 0.0:
-                g = a
-                flag = 2
-            elif fb <= 0.0:
-                g = bb
-                flag = 2
-            else:
-                side = 0
-                g = 0.5 * (a + bb)
-                for _ in range(60):
-                    g = (a * fb - bb * fa) / (fb - fa)
-                    fg = _moment(mode, g, t, p, lo, hi, dead, c1, c2, mu_u, exact, v0a, v0b,
-                                 rows, g0, dlog, locate, inv_h, wmax)
-                    if fg > 0.0:
-                        bb = g
-                        fb = fg
-                        if side == -1:
-                            fa *= 0.5
-                        side = -1
-                    else:
-                        a = g
-                        fa = fg
-                        if side == 1:
-                            fb *= 0.5
-                        side = 1
-                    if bb - a < 1e-3:
-                        break
+        if fa >= 0.0:
+            g = a
+        elif fb <= 0.0:
+            g = bb
+        else:
+            side = 0
+            for _ in range(40):
+                g = (a * fb - bb * fa) / (fb - fa)
+                if bb - a < 0.02:
+                    break
+                fg = _moment(mode, g, t, p, lo, hi, dead, c1, c2, mu_u, exact, v0a, v0b,
+                             rows, g0, dlog, locate, inv_h, wmax)
+                if fg > 0.0:
+                    bb = g
+                    fb = fg
+                    if side == -1:
+                        fa *= 0.5
+                    side = -1
+                else:
+                    a = g
+                    fa = fg
+                    if side == 1:
+                        fb *= 0.5
+                    side = 1
+    v00 = np.nan
+    uu = mu_u
+    cc1 = c1
+    cc2 = c2
+    n_iter = 0 if fixed else _MAX_ITER
+    for attempt in range(2):
         uu = mu_u
         cc1 = c1
         cc2 = c2
-        h = np.zeros((4, 4))
-        bvec = np.zeros(4)
-        x = np.zeros(4)
-        v00 = np.nan
-        n_iter = 0 if fixed else _MAX_ITER
+        chi2 = 0.0
         for it in range(n_iter + 1):
             h[:, :] = 0.0
             bvec[:] = 0.0
-            _normal(mode, g, uu, cc1, cc2, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exact,
-                    v0a, v0b, rows, g0, dlog, locate, inv_h, wmax, h, bvec)
-            # priors
+            chi2 = _normal(mode, g, uu, cc1, cc2, t, p, lo, hi, dead, sr2, tq2, eq2, lam,
+                           exact, v0a, v0b, rows, g0, dlog, locate, inv_h, wmax, h, bvec)
             h[1, 1] += 1.0 / (su * su)
             bvec[1] += (mu_u - uu) / (su * su)
             h[2, 2] += 1.0 / (s1 * s1)
             bvec[2] += (c1 - cc1) / (s1 * s1)
             h[3, 3] += 1.0 / (s2 * s2)
             bvec[3] += (c2 - cc2) / (s2 * s2)
-            if sg_prior[px] > 0.0:
-                h[0, 0] += 1.0 / (sg_prior[px] * sg_prior[px])
-                bvec[0] += (g_prior[px] - g) / (sg_prior[px] * sg_prior[px])
+            if sgp > 0.0:
+                h[0, 0] += 1.0 / (sgp * sgp)
+                bvec[0] += (gp - g) / (sgp * sgp)
             for a2 in range(4):
                 for c in range(a2 + 1, 4):
                     h[a2, c] = h[c, a2]
             h[0, 0] += 1e-12
-            ok, v00 = _solve4(h, bvec, x)
+            ok, v00 = _solve4(h, bvec, x, lmat, wy, wz)
             if not ok:
                 v00 = np.nan
                 break
             if it == n_iter:
                 break
-            dg = x[0]
-            if dg > _MAX_STEP_G:
-                dg = _MAX_STEP_G
-            elif dg < -_MAX_STEP_G:
-                dg = -_MAX_STEP_G
-            gn = g + dg
-            if gn < g_lo:
-                gn = g_lo
-            elif gn > g_hi:
-                gn = g_hi
+            dg = min(max(x[0], -_MAX_STEP_G), _MAX_STEP_G)
+            gn = min(max(g + dg, g_lo), g_hi)
             uu += x[1]
-            cc1 += x[2]
-            cc2 += x[3]
-            if cc1 < 1e-3:
-                cc1 = 1e-3
-            if cc2 < 1e-3:
-                cc2 = 1e-3
+            cc1 = max(cc1 + x[2], 1e-3)
+            cc2 = max(cc2 + x[3], 1e-3)
             done = abs(gn - g) < _TOL_G
             g = gn
             if done:
-                h[:, :] = 0.0
-                bvec[:] = 0.0
-                _normal(mode, g, uu, cc1, cc2, t, p, lo, hi, dead, sr2, tq2, eq2, lam,
-                        exact, v0a, v0b, rows, g0, dlog, locate, inv_h, wmax, h, bvec)
-                h[1, 1] += 1.0 / (su * su)
-                h[2, 2] += 1.0 / (s1 * s1)
-                h[3, 3] += 1.0 / (s2 * s2)
-                if sg_prior[px] > 0.0:
-                    h[0, 0] += 1.0 / (sg_prior[px] * sg_prior[px])
-                for a2 in range(4):
-                    for c in range(a2 + 1, 4):
-                        h[a2, c] = h[c, a2]
-                h[0, 0] += 1e-12
-                ok, v00 = _solve4(h, bvec, x)
-                if not ok:
-                    v00 = np.nan
-                break
-        if not fixed and (g <= g_lo + 1e-9 or g >= g_hi - 1e-9):
-            flag = 2
-        out_g[px] = g
-        out_sd[px] = math.sqrt(v00) if v00 == v00 and v00 >= 0.0 else np.nan
-        out_con[px] = cc1
-        out_coff[px] = cc2
-        out_flag[px] = flag
+                break  # the variance from this last matrix, a step of < _TOL_G away
+        if fixed or attempt == 1 or chi2 <= _CHI2_RESCUE * (hi - lo) + 2.0:
+            break
+        # a poor fit (a wrong local optimum): restart from the best point of a coarse scan
+        best = np.inf
+        gbest = g
+        gs = g_lo
+        while gs <= g_hi:
+            h[:, :] = 0.0
+            bvec[:] = 0.0
+            cs = _normal(mode, gs, mu_u, c1, c2, t, p, lo, hi, dead, sr2, tq2, eq2, lam,
+                         exact, v0a, v0b, rows, g0, dlog, locate, inv_h, wmax, h, bvec)
+            if cs < best:
+                best = cs
+                gbest = gs
+            gs += _SCAN_STEP
+        g = gbest
+    if not fixed and (g <= g_lo + 1e-9 or g >= g_hi - 1e-9):
+        flag = 2.0
+    out[0] = g
+    out[1] = math.sqrt(v00) if v00 == v00 and v00 >= 0.0 else np.nan
+    out[2] = cc1
+    out[3] = cc2
+    out[4] = flag
+
+
+@nb.njit(cache=True, parallel=True)
+def _estimate_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
+                     dlog, locate, inv_h, wmax, g_lo, g_hi, net_g, net_v, min_events, con0,
+                     coff0, scon, scoff, g_prior, sg_prior, fixed, out_g, out_sd, out_con,
+                     out_coff, out_flag):
+    """Fit every pixel (module docstring), in blocks of ``_BLOCK`` per thread. ``fixed``:
+    evaluate the information at ``g_prior`` with no fit (the bound); ``sg_prior > 0``: a
+    Gaussian prior on ``g``."""
+    npx = off.shape[0] - 1
+    nblk = (npx + _BLOCK - 1) // _BLOCK
+    for blk in nb.prange(nblk):
+        h = np.zeros((4, 4))
+        bvec = np.zeros(4)
+        x = np.zeros(4)
+        lmat = np.zeros((4, 4))
+        wy = np.zeros(4)
+        wz = np.zeros(4)
+        res = np.zeros(5)
+        for px in range(blk * _BLOCK, min(npx, (blk + 1) * _BLOCK)):
+            lo = off[px]
+            hi = off[px + 1]
+            if hi - lo < min_events:
+                out_g[px] = np.nan
+                out_sd[px] = np.nan
+                out_con[px] = con0[px]
+                out_coff[px] = coff0[px]
+                out_flag[px] = 1
+                continue
+            _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
+                       g0, dlog, locate, inv_h, wmax, g_lo, g_hi, net_g, net_v, con0[px],
+                       coff0[px], max(scon[px], 1e-6), max(scoff[px], 1e-6), g_prior[px],
+                       sg_prior[px], fixed, h, bvec, x, lmat, wy, wz, res)
+            out_g[px] = res[0]
+            out_sd[px] = res[1]
+            out_con[px] = res[2]
+            out_coff[px] = res[3]
+            out_flag[px] = np.uint8(res[4])
 
 
 # ----------------------------------------------------------------------------- grouping
@@ -660,12 +747,10 @@ def thresholds_prior(sensor: SensorParams, *, width: int, height: int,
 
 def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int,
          priors: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
-         g_prior: np.ndarray | None, sg_prior: np.ndarray | None, fixed: bool
-         ) -> tuple[np.ndarray, ...]:
+         g_prior: np.ndarray | None, sg_prior: np.ndarray | None, fixed: bool,
+         min_events: int = 2) -> tuple[np.ndarray, ...]:
     con, coff, scon, scoff = priors
     counts = np.diff(off)
-    pix_list = np.flatnonzero(counts >= 0).astype(np.int64)
-    # big pixels first spread the work between threads
     out_g = np.empty(npx)
     out_sd = np.empty(npx)
     out_con = np.empty(npx)
@@ -676,10 +761,11 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
                                                                       dtype=np.float64)
     tq2 = model.jitter_us ** 2 + model.res_us ** 2 / 12.0
     eq2 = model.res_us ** 2 / 12.0 + (model.jitter_us ** 2 if model.dead else 0.0)
-    _estimate_kernel(off, t, p, pix_list, model.mode, model.dead, model.reset_sigma ** 2, tq2,
-                     eq2, model.noise_rate_per_us, model.exact, model.v0[0], model.v0[1],
+    _estimate_kernel(off, t, p, model.mode, model.dead, model.reset_sigma ** 2, tq2, eq2,
+                     model.noise_rate_per_us, model.exact, model.v0[0], model.v0[1],
                      model.rows, model.g0, model.dlog, model.locate, model.inv_h,
-                     np.int64(model.window_us), model.g_lo, model.g_hi,
+                     np.int64(model.window_us), model.g_lo, model.g_hi, model.net_g,
+                     model.net_v, np.int64(1 if fixed else min_events),
                      np.ascontiguousarray(con), np.ascontiguousarray(coff),
                      np.ascontiguousarray(scon), np.ascontiguousarray(scoff), gp, sp, fixed,
                      out_g, out_sd, out_con, out_coff, out_flag)
@@ -696,6 +782,7 @@ def estimate(
     priors: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
     g_prior: np.ndarray | None = None,
     g_prior_sigma: np.ndarray | None = None,
+    min_events: int = 2,
     progress: Callable[[int, int], None] | None = None,
 ) -> MlResult:
     """Maximum-likelihood radiance per pixel and cycle.
@@ -724,7 +811,7 @@ def estimate(
         off, t, p = group_by_pixel(events, width=width, height=height,
                                    start_us=int(starts[c]), window_us=model.window_us)
         g, s, c1, c2, fl, counts = _run(model, off, t, p, npx, priors, g_prior,
-                                        g_prior_sigma, False)
+                                        g_prior_sigma, False, min_events)
         bad = fl != 0
         with np.errstate(over="ignore"):
             r = np.exp(g)
