@@ -59,10 +59,12 @@ import logging
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numba as nb
 import numpy as np
 
+from asynhdr.events import Recording
 from asynhdr.rig import Rig
 from asynhdr.sensor.params import SensorParams
 from asynhdr.sensor.photoreceptor import Lowpass, lowpass_rows, time_grid
@@ -73,10 +75,13 @@ __all__ = [
     "FLAG_OUT_OF_RANGE",
     "MlModel",
     "MlResult",
+    "cached_model",
     "estimate",
     "fisher_information",
     "group_by_pixel",
     "ml_model",
+    "reconstruct_ml",
+    "sensor_of",
     "thresholds_prior",
 ]
 
@@ -98,7 +103,7 @@ the first event's reference is unknown, so one event only bounds the radiance): 
 FLAG_OUT_OF_RANGE = 2
 """Flag: the estimate left the model's radiance range: NaN."""
 
-_MAX_ITER = 12
+_MAX_ITER = 16
 _TOL_G = 1e-4
 _MAX_STEP_G = 1.0
 _BLOCK = 256
@@ -551,11 +556,15 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
         cc1 = c1
         cc2 = c2
         chi2 = 0.0
+        robust = lam <= 0.0 or fixed
         for it in range(n_iter + 1):
             h[:, :] = 0.0
             bvec[:] = 0.0
-            chi2 = _normal(mode, g, uu, cc1, cc2, t, p, lo, hi, dead, sr2, tq2, eq2, lam,
-                           exact, v0a, v0b, rows, g0, dlog, locate, inv_h, wmax, h, bvec)
+            # plain least squares until converged, then with the outlier weights (events
+            # far from a poor start would otherwise all be taken for outliers)
+            chi2 = _normal(mode, g, uu, cc1, cc2, t, p, lo, hi, dead, sr2, tq2, eq2,
+                           lam if robust else 0.0, exact, v0a, v0b, rows, g0, dlog, locate,
+                           inv_h, wmax, h, bvec)
             h[1, 1] += 1.0 / (su * su)
             bvec[1] += (mu_u - uu) / (su * su)
             h[2, 2] += 1.0 / (s1 * s1)
@@ -582,8 +591,10 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
             cc2 = max(cc2 + x[3], 1e-3)
             done = abs(gn - g) < _TOL_G
             g = gn
-            if done:
-                break  # the variance from this last matrix, a step of < _TOL_G away
+            if done or it == n_iter // 2 - 1:
+                if robust:
+                    break  # the variance from this last matrix, a step of < _TOL_G away
+                robust = True
         if fixed or attempt == 1 or chi2 <= _CHI2_RESCUE * (hi - lo) + 2.0:
             break
         # a poor fit (a wrong local optimum): restart from the best point of a coarse scan
@@ -856,3 +867,105 @@ def fisher_information(
     _, sd, _, _, fl, _ = _run(model, off, t, p, width * height, priors, g, None, True)
     sd[fl == FLAG_NO_EVENTS] = np.nan
     return sd.reshape(height, width)
+
+
+# ----------------------------------------------------------------------------- recordings
+
+_MODEL_CACHE: dict[str, MlModel] = {}
+_MODEL_CACHE_SIZE = 4
+
+
+def cached_model(rig: Rig, sensor: SensorParams, *, window_us: float,
+                 dlog: float = DEFAULT_DLOG) -> MlModel:
+    """:func:`ml_model`, remembered for the last few (rig, sensor, window): a recording
+    read cycle by cycle builds its tables once."""
+    import hashlib
+    import json
+
+    key_src = json.dumps([rig.to_metadata(), sensor.to_metadata(), float(window_us),
+                          float(dlog)], sort_keys=True, default=str)
+    key = hashlib.sha1(key_src.encode()).hexdigest()
+    m = _MODEL_CACHE.get(key)
+    if m is None:
+        m = ml_model(rig, sensor, window_us=window_us, dlog=dlog)
+        if len(_MODEL_CACHE) >= _MODEL_CACHE_SIZE:
+            _MODEL_CACHE.pop(next(iter(_MODEL_CACHE)))
+        _MODEL_CACHE[key] = m
+    return m
+
+
+def sensor_of(metadata: dict[str, Any], *, threshold: float | None = None) -> SensorParams:
+    """The pixel model of a recording: its metadata's sensor (simulated recordings, or a
+    rig file's ``[sensor]``), else the preset its camera names (IMX636, DAVIS346), else
+    the default :class:`~asynhdr.sensor.params.SensorParams` with ``threshold`` (logged)."""
+    from asynhdr.sensor.params import PRESETS
+
+    s = metadata.get("sensor")
+    if isinstance(s, SensorParams):
+        return s
+    if isinstance(s, dict) and "threshold_on" in s:
+        return SensorParams.from_metadata(s)
+    text = " ".join(str(v) for v in (metadata.get("camera"), metadata.get("header"),
+                                     metadata.get("sensor_name")) if v).lower()
+    for name, preset in PRESETS.items():
+        if name not in ("ideal", "v2e") and name in text:
+            logger.info("ml: sensor model from the %s preset (named in the file)", name)
+            return preset
+    base = SensorParams()
+    if threshold is not None:
+        base = base.with_(threshold_on=threshold, threshold_off=threshold)
+    logger.warning("ml: the recording does not say which sensor made it; assuming the "
+                   "default pixel model (thresholds %.3g); give a rig file with a [sensor] "
+                   "table", base.threshold_on)
+    return base
+
+
+def reconstruct_ml(
+    rec: Recording,
+    windows: Any,
+    *,
+    rig: Rig,
+    l_const: float | None = None,
+    cmap: np.ndarray | None = None,
+    threshold: float | None = None,
+    sensor: SensorParams | None = None,
+    thresholds: tuple[np.ndarray, np.ndarray, np.ndarray | float] | None = None,
+    out: dict[str, Any] | None = None,
+    min_events: int = 2,
+) -> np.ndarray:
+    """``ml`` on a recording: float32 radiance ``(n_cycles, height, width)`` in the unit of
+    ``L_const``, NaN where a pixel has no information.
+
+    ``windows``: :class:`asynhdr.reconstruct.CycleWindows`. ``sensor``: the pixel model
+    (default :func:`sensor_of` the recording). ``thresholds``: calibrated ``(c_on, c_off,
+    sigma)`` maps (a calibration file); else a c-map ``cmap`` scales the nominal
+    thresholds (spread 0.01), else the nominal ones with the sensor's mismatch as their
+    spread. ``out`` receives ``sigma_log``, ``flags``, ``c_on``, ``c_off`` and
+    ``n_events`` (:class:`MlResult`'s fields).
+    """
+    import dataclasses
+
+    from asynhdr.events import sort_events
+
+    if l_const is not None and float(l_const) != float(rig.l_const):
+        rig = dataclasses.replace(rig, l_const=float(l_const))
+    sensor = sensor or sensor_of(rec.metadata, threshold=threshold)
+    model = cached_model(rig, sensor, window_us=float(windows.window_us))
+    w, h = rec.width, rec.height
+    if thresholds is not None:
+        c_on, c_off, sig = thresholds
+        priors = thresholds_prior(sensor, width=w, height=h, c_on=c_on, c_off=c_off,
+                                  sigma=sig)
+    elif cmap is not None:
+        cm = np.asarray(cmap, dtype=np.float64)
+        priors = thresholds_prior(sensor, width=w, height=h, c_on=sensor.threshold_on * cm,
+                                  c_off=sensor.threshold_off * cm, sigma=0.01)
+    else:
+        priors = thresholds_prior(sensor, width=w, height=h)
+    ev, _ = sort_events(rec.events)
+    res = estimate(ev, width=w, height=h, starts_us=windows.start_us, model=model,
+                   priors=priors, min_events=min_events)
+    if out is not None:
+        out.update(sigma_log=res.sigma_log, flags=res.flags, c_on=res.c_on, c_off=res.c_off,
+                   n_events=res.n_events)
+    return res.radiance

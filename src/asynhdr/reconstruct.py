@@ -43,6 +43,12 @@ per event; the image is the geometric mean of these estimates over the cycle's
 events. It is linear in radiance (up to noise) and uses the c-map's per-pixel
 thresholds when given. Pixels with no usable event are 0.
 
+Maximum likelihood (``ml``, :mod:`asynhdr.ml`): each pixel's events inverted together
+through the simulator's own pixel model (thresholds, dead time, reset noise, jitter,
+photoreceptor, background events); linear radiance with a per-pixel uncertainty, NaN
+where a pixel has no information. It needs the rig and the sensor model (the recording's
+metadata, or a rig file, :mod:`asynhdr.io.rigfile`).
+
 Per-pixel sums are one pass over the time-sorted events (numba), scatter-adding into
 ``(n_cycles, height * width)``.
 """
@@ -85,7 +91,7 @@ logger = logging.getLogger(__name__)
 WEIGHTINGS: dict[str, int] = {"raw": 0, "linear": 1, "quadratic": 2, "poly5": 3, "exp": 4}
 """The paper's temporal weightings, name -> kernel code."""
 
-METHODS: tuple[str, ...] = (*WEIGHTINGS, "ttfe", "count", "invert")
+METHODS: tuple[str, ...] = (*WEIGHTINGS, "ttfe", "count", "invert", "ml")
 """Every reconstruction method, selected by name."""
 
 DEFAULT_K = 10.0
@@ -308,6 +314,7 @@ def windows_for(
     window_us: float | None = None,
     period_us: float | None = None,
     single: bool = False,
+    rig: Rig | None = None,
 ) -> CycleWindows:
     """Integration windows from the recording's rising trigger edges.
 
@@ -331,7 +338,8 @@ def windows_for(
 
         return cycles_from_events(_sorted_events(rec), period_us=period)
 
-    return plan_windows(rec.triggers, rec.metadata, from_rate, window_us=window_us,
+    meta = rec.metadata if rig is None else dict(rec.metadata, rig=rig.to_metadata())
+    return plan_windows(rec.triggers, meta, from_rate, window_us=window_us,
                         period_us=period_us)
 
 
@@ -507,11 +515,24 @@ def _invert(rec: Recording, windows: CycleWindows, *, k: float, threshold: float
     return (l_const * rho).reshape(windows.n_cycles, rec.height, rec.width).astype(np.float32)
 
 
+def _ml(rec: Recording, windows: CycleWindows, *, k: float, threshold: float,
+        l_const: float, cmap: np.ndarray | None, rig: Rig | None,
+        extra: dict[str, Any] | None = None) -> np.ndarray:
+    from asynhdr.ml import reconstruct_ml
+
+    if rig is None:
+        raise ValueError("method 'ml' needs the rig (a simulated recording, or --rig with a "
+                         "rig file)")
+    return reconstruct_ml(rec, windows, rig=rig, l_const=l_const, cmap=cmap,
+                          threshold=threshold, **(extra or {}))
+
+
 _TABLE: dict[str, Callable[..., np.ndarray]] = {
     **{m: _paper(m) for m in WEIGHTINGS},
     "count": _count,
     "ttfe": _ttfe,
     "invert": _invert,
+    "ml": _ml,
 }
 
 
@@ -524,6 +545,8 @@ def reconstruct(
     windows: CycleWindows | None = None,
     threshold: float | None = None,
     l_const: float | None = None,
+    rig: Rig | None = None,
+    ml_options: dict[str, Any] | None = None,
 ) -> np.ndarray:
     """One image per cycle, float32 ``(n_cycles, height, width)``.
 
@@ -537,6 +560,9 @@ def reconstruct(
     windows : integration windows (default: from the triggers, see ``windows_for``).
     threshold : the nominal contrast threshold ``c`` (default: the recording's sensor).
     l_const : the reference radiance (default: the rig's, else 1).
+    rig : the rig (default: the recording's metadata), e.g. from a rig file.
+    ml_options : for ``ml``: keyword options of :func:`asynhdr.ml.reconstruct_ml`
+        (``sensor``, ``thresholds``, ``out``: a dict that receives the uncertainty).
 
     Returns
     -------
@@ -546,8 +572,8 @@ def reconstruct(
         raise ValueError(f"unknown method {method!r}; expected one of {list(METHODS)}")
     if not (k > 0 and math.isfinite(k)):
         raise ValueError(f"k must be positive, got {k}")
-    rig = rig_of(rec)
-    windows = windows or windows_for(rec)
+    rig = rig if rig is not None else rig_of(rec)
+    windows = windows or windows_for(rec, rig=rig)
     c = threshold_of(rec) if threshold is None else float(threshold)
     if not (c > 0 and math.isfinite(c)):
         raise ValueError(f"threshold must be positive, got {c}")
@@ -563,6 +589,8 @@ def reconstruct(
         raise ValueError(f"c-map shape {cm.shape} does not match the sensor "
                          f"({rec.height}, {rec.width})")
     kwargs: dict[str, Any] = dict(k=float(k), threshold=c, l_const=lc, cmap=cm, rig=rig)
+    if method == "ml":
+        kwargs["extra"] = ml_options
     return _TABLE[method](rec, windows, **kwargs)
 
 
@@ -638,6 +666,8 @@ def reconstruct_file(
     height: int | None = None,
     time_unit: str | None = None,
     progress: Callable[[int], None] | None = None,
+    rig: Rig | None = None,
+    ml_options: dict[str, Any] | None = None,
 ) -> FileReconstruction:
     """Plan the reconstruction of a recording file, to run cycle by cycle.
 
@@ -660,6 +690,8 @@ def reconstruct_file(
         raise ValueError(f"{path}: no sensor geometry; give width and height")
     head_meta = info["header"].get("metadata")
     metadata = dict(head_meta) if isinstance(head_meta, dict) else {}
+    if rig is not None:  # a rig file: its cycles, its ramp, its waveforms
+        metadata["rig"] = rig.to_metadata()
 
     def from_rate(period: float | None) -> Cycles:
         return cycles_from_file(path, period_us=period, scan=scan, **read)
@@ -667,6 +699,6 @@ def reconstruct_file(
     windows = plan_windows(scan.triggers, metadata, from_rate, window_us=window_us,
                            period_us=period_us)
     options: dict[str, Any] = dict(method=method, k=k, cmap=cmap, threshold=threshold,
-                                   l_const=l_const)
+                                   l_const=l_const, rig=rig, ml_options=ml_options)
     return FileReconstruction(path, windows, metadata, int(info["width"]),
                               int(info["height"]), int(info["events"]), options, read)

@@ -28,7 +28,7 @@ def _root(verbose: bool = typer.Option(False, "--verbose", "-v", help="Log progr
 
 def _register() -> None:
     # Each import adds its commands to ``app``.
-    from asynhdr.cli import bench, core, generator, info, waveform  # noqa: F401
+    from asynhdr.cli import bench, core, design, generator, info, waveform  # noqa: F401
 
 
 def main() -> None:

@@ -346,7 +346,7 @@ def reconstruct(
     recording: Path = typer.Argument(..., help="Event recording (any supported format)."),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder."),
     method: str = typer.Option("exp", help="raw | linear | quadratic | poly5 | exp | ttfe | "
-                               "count | invert."),
+                               "count | invert | ml."),
     k: float = typer.Option(10.0, help="k of the exponential weighting."),
     cmap: Path | None = typer.Option(None, help="c-map from 'asynhdr calibrate'."),
     threshold: float | None = typer.Option(None, help="Contrast threshold c (default: the "
@@ -363,6 +363,12 @@ def reconstruct(
     tonemap: str = typer.Option("log", help="PNG tone mapping: log | reinhard | linear."),
     demosaic: str = typer.Option("malvar", help="Colour recordings (a CFA in the metadata): "
                                  "malvar | bilinear | none (write the raw mosaic)."),
+    rig: Path | None = typer.Option(None, "--rig", help="Rig file (TOML, from 'asynhdr "
+                                    "design' or 'simulate --rig-out'): the rig and sensor "
+                                    "of a real recording, for ml, invert and ttfe."),
+    calibration: Path | None = typer.Option(None, "--calibration", help="Calibration file "
+                                            "from 'asynhdr calibrate-thresholds' (per-pixel "
+                                            "ON and OFF thresholds) for ml."),
 ) -> None:
     """Reconstruct one HDR image per modulation cycle.
 
@@ -375,7 +381,12 @@ def reconstruct(
     fmts = _parse_formats(formats)
     meta: dict[str, Any] = {"source": str(recording), "method": method, "k": k,
                             "cmap": str(cmap) if cmap else None,
-                            "radiometric": method in ("ttfe", "invert")}
+                            "radiometric": method in ("ttfe", "invert", "ml")}
+    from asynhdr.cli.ml_support import MlOutputs
+
+    mlo = MlOutputs.open(rig, calibration, method=method, formats=fmts, fail=fail)
+    if rig is not None:
+        meta["rig"] = str(rig)
 
     from asynhdr.cli._colour import DEMOSAIC_CHOICES, write_colour
 
@@ -385,6 +396,10 @@ def reconstruct(
 
     def write(i: int, img: np.ndarray, unit: str) -> None:
         stem = out / f"{recording.stem}_{method}_{i:04d}"
+        unit = mlo.unit or unit
+        if mlo.active:
+            mlo.write(stem, img, dict(meta, cycle=i, unit=unit), tonemap=tonemap)
+            return
         if rec_meta.get("cfa") and demosaic != "none":
             write_colour(stem, img, rec_meta, fmts, method=demosaic, tonemap=tonemap,
                          extra=dict(meta, cycle=i, unit=unit))
@@ -408,7 +423,7 @@ def reconstruct(
             rec_meta.update(rec.metadata)
             windows = windows_for(rec, window_us=window_us, single=True)
             img = run(rec, method=method, k=k, cmap=cm, windows=windows,
-                      threshold=threshold)[0]
+                      threshold=threshold, rig=mlo.rig, ml_options=mlo.options)[0]
             write(0, img, rec.metadata.get("radiance_unit", "relative"))
             console.print(f"1 image ({method}) from {rec.events.size:,} events -> {out}/")
             return
@@ -418,7 +433,8 @@ def reconstruct(
             plan = reconstruct_file(recording, method=method, k=k, cmap=cm,
                                     window_us=window_us, period_us=period_us,
                                     threshold=threshold, width=width, height=height,
-                                    progress=lambda n: update("scan (events)", n, n))
+                                    progress=lambda n: update("scan (events)", n, n),
+                                    rig=mlo.rig, ml_options=mlo.options)
             unit = plan.metadata.get("radiance_unit", "relative")
             rec_meta.update(plan.metadata)
             for i, _, img in plan:
