@@ -5,8 +5,10 @@
   held at ``ln L_flat``: what is left to estimate per pixel and cycle is ``(u, c_on,
   c_off)``, linear in the chain's equations, with the nominal thresholds as a weak prior
   (``prior_sigma``, 0.1 by default: the data decide). The estimates of all cycles and
-  captures are averaged per pixel; their spread over the cycles, divided by the square
-  root of their number, is the stated error. A pixel fires ON and OFF events in a cycle
+  captures are averaged per pixel, weighted by the events of that polarity each cycle
+  fired beyond the first (what identifies the threshold); the stated error is that
+  weighted mean's, from the weighted scatter of the cycles (a cycle's estimate taken to
+  have a variance inversely proportional to its weight). A pixel fires ON and OFF events in a cycle
   when its signal falls and then rises: with the cross-fading rig of ``asynhdr design``
   that is every pixel near ``L_const``, the default flat radiance.
 - **Thresholds from a capture's own events**: ``ml`` fits ``c_on`` and ``c_off`` with the
@@ -162,10 +164,9 @@ def thresholds_from_flats(
     on0, off0, _, _ = thresholds_prior(base, width=w, height=h)
     sp = np.full(w * h, float(prior_sigma))
     priors = (on0, off0, sp, sp.copy())
-    s1 = np.zeros((2, h, w))
-    s2 = np.zeros((2, h, w))
-    n1 = np.zeros((h, w))
-    n2 = np.zeros((h, w))
+    # per polarity: sums of weights, weighted values and squares (weight: that cycle's
+    # events of the polarity, which is what identifies the threshold)
+    acc = np.zeros((2, 4, h, w))
     n_cycles = 0
     for cap, lf in zip(caps, rads, strict=True):
         if (cap.height, cap.width) != (h, w):
@@ -181,24 +182,29 @@ def thresholds_from_flats(
                        priors=priors, g_prior=g, g_prior_sigma=np.full(w * h, 1e-6))
         for c in range(starts.size):
             ok = res.flags[c] == 0
-            on_id, off_id = _polarity_counts(cap, rig, int(starts[c]), model.window_us, w, h)
-            m1 = ok & (on_id >= 1)
-            m2 = ok & (off_id >= 1)
-            for arr, m, cc in ((s1, m1, res.c_on[c]), (s2, m2, res.c_off[c])):
-                arr[0][m] += cc[m]
-                arr[1][m] += cc[m].astype(np.float64) ** 2
-            n1 += m1
-            n2 += m2
+            n_on, n_off = _polarity_counts(cap, int(starts[c]), model.window_us, w, h)
+            for k, (n_p, cc) in enumerate(((n_on, res.c_on[c]), (n_off, res.c_off[c]))):
+                wt = np.where(ok, np.maximum(n_p - 1, 0), 0).astype(np.float64)
+                v = cc.astype(np.float64)
+                acc[k, 0] += wt
+                acc[k, 1] += wt * v
+                acc[k, 2] += wt * v * v
+                acc[k, 3] += wt > 0
         n_cycles += starts.size
     out = []
-    for arr, n, nom in ((s1, n1, sensor.threshold_on), (s2, n2, sensor.threshold_off)):
+    counts = []
+    for k, nom in ((0, sensor.threshold_on), (1, sensor.threshold_off)):
+        sw, s1, s2, nc = acc[k]
         with np.errstate(invalid="ignore", divide="ignore"):
-            mean = np.where(n > 0, arr[0] / np.maximum(n, 1), nom)
-            var = np.where(n > 1, (arr[1] / np.maximum(n, 1) - mean ** 2) *
-                           n / np.maximum(n - 1, 1), prior_sigma ** 2)
-            err = np.sqrt(np.maximum(var, 0.0) / np.maximum(n, 1))
-        err = np.where(n > 1, err, prior_sigma)
+            mean = np.where(sw > 0, s1 / sw, nom)
+            # cycle i's estimate has variance sigma1^2 / w_i: the weighted mean's variance
+            # is sigma1^2 / sum(w), sigma1^2 from the weighted scatter over (N - 1)
+            scatter = np.maximum(s2 - 2 * mean * s1 + mean ** 2 * sw, 0.0)
+            err = np.sqrt(scatter / np.maximum(nc - 1, 1.0) / np.maximum(sw, 1.0))
+        err = np.where(nc > 1, np.maximum(err, 1e-4), prior_sigma)
         out.append((mean.astype(np.float32), err.astype(np.float32)))
+        counts.append(sw)
+    n1, n2 = counts
     how = {"kind": "thresholds from flat fields", "captures": len(caps),
            "cycles": n_cycles, "flat_radiance": rads, "prior_sigma": prior_sigma,
            "median_error_on": float(np.median(out[0][1])),
@@ -219,7 +225,7 @@ def _starts(rec: Recording, rig: Rig) -> np.ndarray:
     return rig.cycle_starts_us(n, t0_us=int(rec.metadata.get("t0_us", 0)))
 
 
-def _polarity_counts(rec: Recording, rig: Rig, start: int, window: int, w: int, h: int
+def _polarity_counts(rec: Recording, start: int, window: int, w: int, h: int
                      ) -> tuple[np.ndarray, np.ndarray]:
     ev = rec.events
     sel = (ev["t"] >= start) & (ev["t"] < start + window)

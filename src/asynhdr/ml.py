@@ -556,14 +556,16 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
         cc1 = c1
         cc2 = c2
         chi2 = 0.0
+        # the bound (fixed) is the information of signal events: no outlier weights
         robust = lam <= 0.0 or fixed
+        lam_fit = 0.0 if fixed else lam
         for it in range(n_iter + 1):
             h[:, :] = 0.0
             bvec[:] = 0.0
             # plain least squares until converged, then with the outlier weights (events
             # far from a poor start would otherwise all be taken for outliers)
             chi2 = _normal(mode, g, uu, cc1, cc2, t, p, lo, hi, dead, sr2, tq2, eq2,
-                           lam if robust else 0.0, exact, v0a, v0b, rows, g0, dlog, locate,
+                           lam_fit if robust else 0.0, exact, v0a, v0b, rows, g0, dlog, locate,
                            inv_h, wmax, h, bvec)
             h[1, 1] += 1.0 / (su * su)
             bvec[1] += (mu_u - uu) / (su * su)
