@@ -149,7 +149,7 @@ def test_designed_defaults_and_prediction() -> None:
     assert set(DESIGNED) >= {"ideal", "v2e", "davis346", "imx636"}
     levels = np.geomspace(0.1, 10 ** 5.5, 14)
     snr = predict(default_rig("ideal"), get_preset("ideal"), levels=levels)
-    db, lo, hi = _longest_run(levels, snr >= 20.0)
+    db, lo, _ = _longest_run(levels, snr >= 20.0)
     assert db == pytest.approx(130.0) and lo == pytest.approx(0.1)
     snr_p = predict(Rig(l_const=10.0), get_preset("ideal"), levels=levels)
     db_p, _, _ = _longest_run(levels, snr_p >= 20.0)

@@ -372,6 +372,23 @@ def write_sweep_csv(path: str | os.PathLike[str],
 
 def fit_panel_curves(sweep: dict[str, tuple[np.ndarray, np.ndarray]], *,
                      method: str = "logistic") -> dict[str, PanelCurve]:
-    """Each swept panel's static curve (:func:`asynhdr.panel.calibrate_curve`)."""
-    return {k: calibrate_curve(v, t, method=method)  # type: ignore[arg-type]
-            for k, (v, t) in sweep.items()}
+    """Each swept panel's static curve (:func:`asynhdr.panel.calibrate_curve`). A sweep
+    whose noise puts the open state above 1 is renormalised to its fitted open state
+    (scaled down until the fitted curve stays within (0, 1]; the factor is logged)."""
+    out = {}
+    for k, (v, t) in sweep.items():
+        tt = np.asarray(t, dtype=np.float64)
+        scale = 1.0
+        for _ in range(20):
+            try:
+                out[k] = calibrate_curve(v, tt * scale, method=method)  # type: ignore[arg-type]
+                break
+            except ValueError as exc:
+                if "leaves (0, 1]" not in str(exc):
+                    raise
+                scale *= 0.995
+        else:
+            raise ValueError(f"panel {k}: the sweep cannot be normalised to its open state")
+        if scale != 1.0:
+            logger.info("panel %s: sweep scaled by %.4f to its fitted open state", k, scale)
+    return out

@@ -248,14 +248,16 @@ def design(
 
 
 DESIGNED: dict[str, dict[str, float]] = {
-    "ideal": {"l_const": 316.0, "a": 0.25, "b": 0.65},
-    "v2e": {"l_const": 316.0, "a": 0.25, "b": 0.65},
-    "davis346": {"l_const": 316.0, "a": 0.25, "b": 0.65},
-    "imx636": {"l_const": 316.0, "a": 0.25, "b": 0.65},
+    # asynhdr design --preset NAME (defaults: 0.1 to 316,000 lux, 20 cycles/s, 1000:1
+    # panels, per-pixel SNR >= 20 dB); predicted range in the comment
+    "ideal": {"l_const": 278.55655932390493, "a": 0.35, "b": 0.9},  # 130 dB
+    "v2e": {"l_const": 452.8253292719891, "a": 0.35, "b": 0.9},  # 130 dB
+    "davis346": {"l_const": 3162.277660168379, "a": 0.3, "b": 0.8},  # 95 dB
+    "imx636": {"l_const": 1196.6450696489756, "a": 0.2, "b": 0.55},  # 95 dB
 }
-"""The CLI's default rig per sensor preset: ``asynhdr design --preset NAME`` for the
-default scene range (:data:`DEFAULT_SCENE_RANGE`), 20 cycles per second and 1000:1 panels
-(docs/design.md lists the predicted ranges)."""
+"""The CLI's default rig per sensor preset, as ``asynhdr design --preset NAME`` chose it
+for the default scene range (:data:`DEFAULT_SCENE_RANGE`), 20 cycles per second and
+1000:1 panels (docs/design.md lists the predicted ranges)."""
 
 
 def default_rig(preset: str, *, period_us: int | None = None) -> Rig:
