@@ -264,5 +264,6 @@ def default_rig(preset: str, *, period_us: int | None = None) -> Rig:
     """The designed rig of :data:`DESIGNED` for ``preset`` (a preset without an entry gets
     the ``v2e`` one)."""
     p = DESIGNED.get(preset, DESIGNED["v2e"])
-    return sequential_rig(period_us=int(period_us or round(1e6 / DEFAULT_FRAME_RATE_HZ)),
+    period = round(1e6 / DEFAULT_FRAME_RATE_HZ) if period_us is None else int(period_us)
+    return sequential_rig(period_us=period,
                           l_const=p["l_const"], a=p["a"], b=p["b"])

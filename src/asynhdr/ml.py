@@ -107,7 +107,7 @@ _MAX_ITER = 16
 _TOL_G = 1e-4
 _MAX_STEP_G = 1.0
 _BLOCK = 256
-_CHI2_RESCUE = 4.0
+_CHI2_RESCUE = 2.0
 _SCAN_STEP = 0.2
 
 
@@ -382,10 +382,11 @@ def _solve4(h, b, x, lmat, y, z):
 
 @nb.njit(cache=True, inline="always")
 def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
-            rows, g0, dlog, locate, inv_h, wmax, h, b):
+            rows, g0, dlog, locate, inv_h, wmax, h, b, first_var=0.0):
     """Accumulate the Gauss-Newton normal equations of the events ``lo..hi`` at
     ``theta = (g, u, c_on, c_off)`` into ``h`` and ``b`` (``b = -sum w r J``); returns
-    ``chi2 = sum w r^2``."""
+    ``chi2 = sum w r^2``. ``first_var`` is added to the variance of the equations that hold
+    ``u`` (a scan at fixed ``u`` gives them the prior's spread)."""
     chi2 = 0.0
     vs, dgs, _ = _eval(mode, g, -1, False, exact, v0a, v0b, rows, g0, dlog, locate, inv_h)
     n_on = 0.0
@@ -408,7 +409,7 @@ def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exac
                 ref = vs + uu
                 dref = dgs
                 j1 = -1.0
-                var = dtc * dtc * tq2
+                var = dtc * dtc * tq2 + first_var
             else:
                 ref, dref, dte = _eval(mode, g, prev, True, exact, v0a, v0b, rows, g0, dlog,
                                        locate, inv_h)
@@ -431,7 +432,7 @@ def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exac
             j1 = -1.0
             j2 = -n_on
             j3 = n_off
-            var = sr2 * k_ev + dtc * dtc * tq2
+            var = sr2 * k_ev + dtc * dtc * tq2 + first_var
         if var < 1e-12:
             var = 1e-12
         w = 1.0 / var
@@ -606,8 +607,9 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
         while gs <= g_hi:
             h[:, :] = 0.0
             bvec[:] = 0.0
-            cs = _normal(mode, gs, mu_u, c1, c2, t, p, lo, hi, dead, sr2, tq2, eq2, lam,
-                         exact, v0a, v0b, rows, g0, dlog, locate, inv_h, wmax, h, bvec)
+            cs = _normal(mode, gs, mu_u, c1, c2, t, p, lo, hi, dead, sr2, tq2, eq2, 0.0,
+                         exact, v0a, v0b, rows, g0, dlog, locate, inv_h, wmax, h, bvec,
+                         su * su)
             if cs < best:
                 best = cs
                 gbest = gs
@@ -754,7 +756,8 @@ def thresholds_prior(sensor: SensorParams, *, width: int, height: int,
         raise ValueError(f"threshold maps must have {height}x{width} pixels, got {on.size} "
                          f"and {off.size}")
     sg = 0.005 if sigma is None else sigma
-    s = np.broadcast_to(np.asarray(sg, dtype=np.float64), (npx,)).astype(np.float64)
+    s = np.broadcast_to(np.asarray(sg, dtype=np.float64).ravel() if np.ndim(sg) else
+                        np.asarray(sg, dtype=np.float64), (npx,)).astype(np.float64)
     return on, off, s, s.copy()
 
 
