@@ -129,3 +129,30 @@ def test_sequential_rig_has_no_blind_band() -> None:
     counts = np.bincount(rec.events["y"], minlength=levels.size)
     # ln 2 / 0.2 = 3.5: at least three events up and three down
     assert counts.min() >= 6, counts
+
+
+def test_cli_simulate_rig_out_then_reconstruct_ml_with_rig(tmp_path) -> None:
+    # a recording file that does not keep the rig (EVT 3.0) reconstructs with --rig
+    from typer.testing import CliRunner
+
+    from asynhdr.cli import _register, app
+    from asynhdr.io.images import read_image
+
+    _register()
+    runner = CliRunner()
+    rec = tmp_path / "flat.raw"
+    rig = tmp_path / "rig.toml"
+    r = runner.invoke(app, ["simulate", "flat:300", "-o", str(rec), "--width", "16",
+                            "--height", "8", "--preset", "ideal", "--n-cycles", "2",
+                            "--rig-out", str(rig)])
+    assert r.exit_code == 0, r.output
+    assert rig.is_file()
+    out = tmp_path / "img"
+    r = runner.invoke(app, ["reconstruct", str(rec), "-o", str(out), "--method", "ml",
+                            "--rig", str(rig), "--formats", "exr"])
+    assert r.exit_code == 0, r.output
+    img = read_image(out / "flat_ml_0001.exr")
+    sig = read_image(out / "flat_ml_0001_sigma.exr")
+    assert (out / "flat_ml_0001_valid.png").is_file()
+    np.testing.assert_allclose(img, 300.0, rtol=2e-3)
+    assert np.all(sig < 0.01)

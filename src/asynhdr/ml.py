@@ -175,11 +175,13 @@ def _rising(v: np.ndarray) -> np.ndarray:
 
 def ml_model(rig: Rig, sensor: SensorParams, *, window_us: float | None = None,
              dlog: float = DEFAULT_DLOG, g_range: tuple[float, float] | None = None,
-             dt_us: float | None = None) -> MlModel:
+             dt_us: float | None = None, from_rest: bool = False) -> MlModel:
     """Tabulate the forward model of ``rig`` and ``sensor`` over a window of the cycle.
 
     ``window_us`` defaults to the ramp; ``g_range`` (``ln L`` bounds) to the rig's range
     widened by :data:`RANGE_MARGIN`; ``dt_us`` (the low-pass grid) to the simulator's.
+    ``from_rest``: the photoreceptor starts the cycle settled at its input (a single ramp
+    from rest, or the first cycle of a simulation) instead of in the periodic steady state.
     """
     from asynhdr.sensor.photoreceptor import DEFAULT_DT_US
 
@@ -246,8 +248,9 @@ def ml_model(rig: Rig, sensor: SensorParams, *, window_us: float | None = None,
     b2 = kl * lc * w2(u)
     # the periodic steady state: one cycle from rest, then the cycle that is kept
     y0 = np.log(a1[0] * grid + b2[0])
-    _, y_end = lowpass_rows(grid, a1, b2, s, y0, lp)
-    rows, _ = lowpass_rows(grid, a1, b2, s, y_end, lp)
+    rows, y_end = lowpass_rows(grid, a1, b2, s, y0, lp)
+    if not from_rest:
+        rows, _ = lowpass_rows(grid, a1, b2, s, y_end, lp)
     kmax = s.size - 2
 
     def loc(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -488,10 +491,14 @@ def _initial(net, net_g, net_v):
 @nb.njit(cache=True)
 def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
                dlog, locate, inv_h, wmax, g_lo, g_hi, net_g, net_v, c1, c2, s1, s2, gp, sgp,
-               fixed, h, bvec, x, lmat, wy, wz, out):
-    """One pixel (module docstring). Writes ``(g, sd, c_on, c_off, flag)`` into ``out``."""
+               fixed, h, bvec, x, lmat, wy, wz, out, u_sd):
+    """One pixel (module docstring). Writes ``(g, sd, c_on, c_off, flag)`` into ``out``.
+    ``u_sd > 0``: the pixel starts settled at its reference (``u ~ N(0, u_sd^2)``)."""
     su = (c1 + c2) / math.sqrt(12.0)
     mu_u = 0.5 * (c2 - c1)
+    if u_sd > 0.0:
+        su = u_sd
+        mu_u = 0.0
     flag = 0.0
     if fixed or (0.0 < sgp < 1e-3):
         g = gp
@@ -628,7 +635,7 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
 def _estimate_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
                      dlog, locate, inv_h, wmax, g_lo, g_hi, net_g, net_v, min_events, con0,
                      coff0, scon, scoff, g_prior, sg_prior, fixed, out_g, out_sd, out_con,
-                     out_coff, out_flag):
+                     out_coff, out_flag, u_sd):
     """Fit every pixel (module docstring), in blocks of ``_BLOCK`` per thread. ``fixed``:
     evaluate the information at ``g_prior`` with no fit (the bound); ``sg_prior > 0``: a
     Gaussian prior on ``g``."""
@@ -655,7 +662,7 @@ def _estimate_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
             _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
                        g0, dlog, locate, inv_h, wmax, g_lo, g_hi, net_g, net_v, con0[px],
                        coff0[px], max(scon[px], 1e-6), max(scoff[px], 1e-6), g_prior[px],
-                       sg_prior[px], fixed, h, bvec, x, lmat, wy, wz, res)
+                       sg_prior[px], fixed, h, bvec, x, lmat, wy, wz, res, u_sd)
             out_g[px] = res[0]
             out_sd[px] = res[1]
             out_con[px] = res[2]
@@ -764,7 +771,7 @@ def thresholds_prior(sensor: SensorParams, *, width: int, height: int,
 def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int,
          priors: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
          g_prior: np.ndarray | None, sg_prior: np.ndarray | None, fixed: bool,
-         min_events: int = 2) -> tuple[np.ndarray, ...]:
+         min_events: int = 2, start_sigma: float = 0.0) -> tuple[np.ndarray, ...]:
     con, coff, scon, scoff = priors
     counts = np.diff(off)
     out_g = np.empty(npx)
@@ -784,7 +791,7 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
                      model.net_v, np.int64(1 if fixed else min_events),
                      np.ascontiguousarray(con), np.ascontiguousarray(coff),
                      np.ascontiguousarray(scon), np.ascontiguousarray(scoff), gp, sp, fixed,
-                     out_g, out_sd, out_con, out_coff, out_flag)
+                     out_g, out_sd, out_con, out_coff, out_flag, float(start_sigma))
     return out_g, out_sd, out_con, out_coff, out_flag, counts
 
 
@@ -799,6 +806,7 @@ def estimate(
     g_prior: np.ndarray | None = None,
     g_prior_sigma: np.ndarray | None = None,
     min_events: int = 2,
+    start_sigma: float = 0.0,
     progress: Callable[[int, int], None] | None = None,
 ) -> MlResult:
     """Maximum-likelihood radiance per pixel and cycle.
@@ -809,6 +817,10 @@ def estimate(
     starts_us : cycle starts (µs); each cycle uses ``[start, start + model.window_us)``.
     model : :func:`ml_model` of the rig and the sensor.
     priors : :func:`thresholds_prior`.
+    min_events : fewer events than this: no estimate (:data:`FLAG_NO_EVENTS`).
+    start_sigma : > 0 when every pixel starts the window settled at its reference (a
+        single ramp from rest, as a shutter opening): the start offset ``u`` is then
+        ``N(0, start_sigma^2)`` instead of the uniform band, and one event suffices.
     g_prior, g_prior_sigma : optional Gaussian prior on ``ln L`` per pixel (flat): a known
         flat field for calibration (then the thresholds are what is estimated).
     progress : ``progress(done_cycles, n_cycles)``.
@@ -827,7 +839,7 @@ def estimate(
         off, t, p = group_by_pixel(events, width=width, height=height,
                                    start_us=int(starts[c]), window_us=model.window_us)
         g, s, c1, c2, fl, counts = _run(model, off, t, p, npx, priors, g_prior,
-                                        g_prior_sigma, False, min_events)
+                                        g_prior_sigma, False, min_events, start_sigma)
         bad = fl != 0
         with np.errstate(over="ignore"):
             r = np.exp(g)
@@ -881,18 +893,18 @@ _MODEL_CACHE_SIZE = 4
 
 
 def cached_model(rig: Rig, sensor: SensorParams, *, window_us: float,
-                 dlog: float = DEFAULT_DLOG) -> MlModel:
+                 dlog: float = DEFAULT_DLOG, from_rest: bool = False) -> MlModel:
     """:func:`ml_model`, remembered for the last few (rig, sensor, window): a recording
     read cycle by cycle builds its tables once."""
     import hashlib
     import json
 
     key_src = json.dumps([rig.to_metadata(), sensor.to_metadata(), float(window_us),
-                          float(dlog)], sort_keys=True, default=str)
+                          float(dlog), bool(from_rest)], sort_keys=True, default=str)
     key = hashlib.sha1(key_src.encode()).hexdigest()
     m = _MODEL_CACHE.get(key)
     if m is None:
-        m = ml_model(rig, sensor, window_us=window_us, dlog=dlog)
+        m = ml_model(rig, sensor, window_us=window_us, dlog=dlog, from_rest=from_rest)
         if len(_MODEL_CACHE) >= _MODEL_CACHE_SIZE:
             _MODEL_CACHE.pop(next(iter(_MODEL_CACHE)))
         _MODEL_CACHE[key] = m
@@ -936,7 +948,8 @@ def reconstruct_ml(
     sensor: SensorParams | None = None,
     thresholds: tuple[np.ndarray, np.ndarray, np.ndarray | float] | None = None,
     out: dict[str, Any] | None = None,
-    min_events: int = 2,
+    min_events: int | None = None,
+    settled_start: bool = False,
 ) -> np.ndarray:
     """``ml`` on a recording: float32 radiance ``(n_cycles, height, width)`` in the unit of
     ``L_const``, NaN where a pixel has no information.
@@ -946,7 +959,9 @@ def reconstruct_ml(
     sigma)`` maps (a calibration file); else a c-map ``cmap`` scales the nominal
     thresholds (spread 0.01), else the nominal ones with the sensor's mismatch as their
     spread. ``out`` receives ``sigma_log``, ``flags``, ``c_on``, ``c_off`` and
-    ``n_events`` (:class:`MlResult`'s fields).
+    ``n_events`` (:class:`MlResult`'s fields). ``settled_start``: the pixels start the
+    window at rest on their reference (a single ramp from a closed shutter): the start
+    offset is then known to the reset noise (or 0.02) and one event suffices.
     """
     import dataclasses
 
@@ -955,7 +970,8 @@ def reconstruct_ml(
     if l_const is not None and float(l_const) != float(rig.l_const):
         rig = dataclasses.replace(rig, l_const=float(l_const))
     sensor = sensor or sensor_of(rec.metadata, threshold=threshold)
-    model = cached_model(rig, sensor, window_us=float(windows.window_us))
+    model = cached_model(rig, sensor, window_us=float(windows.window_us),
+                         from_rest=settled_start)
     w, h = rec.width, rec.height
     if thresholds is not None:
         c_on, c_off, sig = thresholds
@@ -968,8 +984,10 @@ def reconstruct_ml(
     else:
         priors = thresholds_prior(sensor, width=w, height=h)
     ev, _ = sort_events(rec.events)
+    start_sigma = max(sensor.reset_noise_sigma, 0.02) if settled_start else 0.0
+    n_min = (1 if settled_start else 2) if min_events is None else int(min_events)
     res = estimate(ev, width=w, height=h, starts_us=windows.start_us, model=model,
-                   priors=priors, min_events=min_events)
+                   priors=priors, min_events=n_min, start_sigma=start_sigma)
     if out is not None:
         out.update(sigma_log=res.sigma_log, flags=res.flags, c_on=res.c_on, c_off=res.c_off,
                    n_events=res.n_events)

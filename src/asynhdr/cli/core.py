@@ -474,8 +474,11 @@ def reconstruct(
             rec = open_recording(recording, width=width, height=height)
             rec_meta.update(rec.metadata)
             windows = windows_for(rec, window_us=window_us, single=True)
+            opts = mlo.options
+            if opts is not None:  # one ramp from rest: the pixels start on their reference
+                opts["settled_start"] = True
             img = run(rec, method=method, k=k, cmap=cm, windows=windows,
-                      threshold=threshold, rig=mlo.rig, ml_options=mlo.options)[0]
+                      threshold=threshold, rig=mlo.rig, ml_options=opts)[0]
             write(0, img, rec.metadata.get("radiance_unit", "relative"))
             console.print(f"1 image ({method}) from {rec.events.size:,} events -> {out}/")
             return
