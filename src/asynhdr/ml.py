@@ -104,10 +104,12 @@ FLAG_OUT_OF_RANGE = 2
 """Flag: the estimate left the model's radiance range: NaN."""
 
 _MAX_ITER = 16
-_TOL_G = 1e-4
+_TOL_G = 1e-3
 _MAX_STEP_G = 1.0
 _BLOCK = 256
-_CHI2_RESCUE = 2.0
+_CHI2_RESCUE = 4.0
+_OUTLIER_Z2 = 16.0
+_OUTLIER_PENALTY = 12.0
 _SCAN_STEP = 0.2
 
 
@@ -316,19 +318,25 @@ def _eval(mode, g, m, end, exact, v0a, v0b, rows, g0, dlog, locate, inv_h):
 
 @nb.njit(cache=True, inline="always")
 def _moment(mode, g, t, p, lo, hi, dead, con, coff, u, exact, v0a, v0b, rows, g0, dlog,
-            locate, inv_h, wmax):
+            locate, inv_h, wmax, skip):
     """``sum_i r_i(g)`` at fixed thresholds and ``u``: rises with ``g`` during a ramp. With a
     dead time the first event is left out (its reference, ``u``, is unknown), unless it
-    is the only one."""
+    is the only one. Event ``skip`` is a background event (see :func:`_normal`)."""
     acc = 0.0
     vs, _, _ = _eval(mode, g, -1, False, exact, v0a, v0b, rows, g0, dlog, locate, inv_h)
     level = 0.0
+    base = vs + u
     prev = -1
     for i in range(lo, hi):
         m = t[i]
         if m >= wmax:
             m = wmax - 1
         vc, _, _ = _eval(mode, g, m, False, exact, v0a, v0b, rows, g0, dlog, locate, inv_h)
+        if i == skip:
+            prev = m
+            base = vc
+            level = 0.0
+            continue
         step = con if p[i] > 0 else -coff
         if dead:
             if prev < 0:
@@ -341,7 +349,7 @@ def _moment(mode, g, t, p, lo, hi, dead, con, coff, u, exact, v0a, v0b, rows, g0
             prev = m
         else:
             level += step
-            acc += vc - vs - u - level
+            acc += vc - base - level
     return acc
 
 
@@ -385,23 +393,43 @@ def _solve4(h, b, x, lmat, y, z):
 
 @nb.njit(cache=True, inline="always")
 def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
-            rows, g0, dlog, locate, inv_h, wmax, h, b, first_var=0.0):
+            rows, g0, dlog, locate, inv_h, wmax, h, b, first_var, skip, stat):
     """Accumulate the Gauss-Newton normal equations of the events ``lo..hi`` at
     ``theta = (g, u, c_on, c_off)`` into ``h`` and ``b`` (``b = -sum w r J``); returns
     ``chi2 = sum w r^2``. ``first_var`` is added to the variance of the equations that hold
-    ``u`` (a scan at fixed ``u`` gives them the prior's spread)."""
+    ``u`` (a scan at fixed ``u`` gives them the prior's spread). Event ``skip`` is taken
+    for a background event: no equation of its own, but it resets the pixel (the walk of
+    a pixel without dead time restarts at its level). ``stat`` receives the largest
+    ``(r / s)^2`` and the index of its event."""
     chi2 = 0.0
     vs, dgs, _ = _eval(mode, g, -1, False, exact, v0a, v0b, rows, g0, dlog, locate, inv_h)
     n_on = 0.0
     n_off = 0.0
     prev = -1
     k_ev = 0
+    base = vs
+    dbase = dgs
+    has_u = 1.0
+    stat[0] = 0.0
+    stat[1] = -1.0
+    stat[2] = 0.0
     for i in range(lo, hi):
         m = t[i]
         if m >= wmax:
             m = wmax - 1
         vc, dgc, dtc = _eval(mode, g, m, False, exact, v0a, v0b, rows, g0, dlog, locate,
                              inv_h)
+        if i == skip:
+            if dead:
+                prev = m
+            else:
+                base = vc
+                dbase = dgc
+                has_u = 0.0
+                n_on = 0.0
+                n_off = 0.0
+                k_ev = 0
+            continue
         k_ev += 1
         j0 = 0.0
         j1 = 0.0
@@ -430,19 +458,23 @@ def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exac
                 n_on += 1.0
             else:
                 n_off += 1.0
-            r = vc - vs - uu - (con * n_on - coff * n_off)
-            j0 = dgc - dgs
-            j1 = -1.0
+            r = vc - base - has_u * uu - (con * n_on - coff * n_off)
+            j0 = dgc - dbase
+            j1 = -has_u
             j2 = -n_on
             j3 = n_off
-            var = sr2 * k_ev + dtc * dtc * tq2 + first_var
+            var = sr2 * k_ev + dtc * dtc * tq2 + has_u * first_var
         if var < 1e-12:
             var = 1e-12
         w = 1.0 / var
+        z2 = r * r * w
+        stat[2] += z2
+        if z2 > stat[0]:
+            stat[0] = z2
+            stat[1] = i
         if lam > 0.0:
             sd = math.sqrt(var)
-            z = r / sd
-            f = math.exp(-0.5 * z * z) * abs(dtc) / (sd * 2.5066282746310002)
+            f = math.exp(-0.5 * z2) * abs(dtc) / (sd * 2.5066282746310002)
             w *= f / (f + lam)
         wr = w * r
         chi2 += wr * r
@@ -489,145 +521,210 @@ def _initial(net, net_g, net_v):
 
 
 @nb.njit(cache=True)
+def _start(lo, hi, t, p, mode, dead, exact, v0a, v0b, rows, g0, dlog, locate, inv_h, wmax,
+           g_lo, g_hi, net_g, net_v, c1, c2, mu_u, skip):
+    """The fit's starting ``g``: where the model's net level change matches the events';
+    then a bracket around it, widened until the moment sum changes sign, and false
+    position (Illinois) to 0.02."""
+    net = 0.0
+    for i in range(lo, hi):
+        if i != skip:
+            net += c1 if p[i] > 0 else -c2
+    g = _initial(net, net_g, net_v)
+    width = 0.25
+    a = max(g - width, g_lo)
+    bb = min(g + width, g_hi)
+    fa = _moment(mode, a, t, p, lo, hi, dead, c1, c2, mu_u, exact, v0a, v0b, rows, g0, dlog,
+                 locate, inv_h, wmax, skip)
+    fb = _moment(mode, bb, t, p, lo, hi, dead, c1, c2, mu_u, exact, v0a, v0b, rows, g0, dlog,
+                 locate, inv_h, wmax, skip)
+    while fa > 0.0 and a > g_lo:
+        bb = a
+        fb = fa
+        width *= 2.0
+        a = max(a - width, g_lo)
+        fa = _moment(mode, a, t, p, lo, hi, dead, c1, c2, mu_u, exact, v0a, v0b, rows, g0,
+                     dlog, locate, inv_h, wmax, skip)
+    while fb < 0.0 and bb < g_hi:
+        a = bb
+        fa = fb
+        width *= 2.0
+        bb = min(bb + width, g_hi)
+        fb = _moment(mode, bb, t, p, lo, hi, dead, c1, c2, mu_u, exact, v0a, v0b, rows, g0,
+                     dlog, locate, inv_h, wmax, skip)
+    if fa >= 0.0:
+        return a
+    if fb <= 0.0:
+        return bb
+    side = 0
+    for _ in range(40):
+        g = (a * fb - bb * fa) / (fb - fa)
+        if bb - a < 0.02:
+            break
+        fg = _moment(mode, g, t, p, lo, hi, dead, c1, c2, mu_u, exact, v0a, v0b, rows, g0,
+                     dlog, locate, inv_h, wmax, skip)
+        if fg > 0.0:
+            bb = g
+            fb = fg
+            if side == -1:
+                fa *= 0.5
+            side = -1
+        else:
+            a = g
+            fa = fg
+            if side == 1:
+                fb *= 0.5
+            side = 1
+    return g
+
+
+@nb.njit(cache=True)
+def _gauss_newton(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
+                  g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp,
+                  n_iter, skip, h, bvec, x, lmat, wy, wz, stat, res):
+    """Gauss-Newton from ``g``: plain least squares until converged (or half the
+    iterations), then with the outlier weights. ``res`` gets ``(g, var_g, u, c_on, c_off,
+    chi2)``; ``stat`` the last pass's largest ``z^2``, its event and the unweighted chi2."""
+    uu = mu_u
+    cc1 = c1
+    cc2 = c2
+    v00 = np.nan
+    chi2 = 0.0
+    robust = lam <= 0.0
+    for it in range(n_iter + 1):
+        h[:, :] = 0.0
+        bvec[:] = 0.0
+        chi2 = _normal(mode, g, uu, cc1, cc2, t, p, lo, hi, dead, sr2, tq2, eq2,
+                       lam if robust else 0.0, exact, v0a, v0b, rows, g0, dlog, locate, inv_h,
+                       wmax, h, bvec, 0.0, skip, stat)
+        h[1, 1] += 1.0 / (su * su)
+        bvec[1] += (mu_u - uu) / (su * su)
+        h[2, 2] += 1.0 / (s1 * s1)
+        bvec[2] += (c1 - cc1) / (s1 * s1)
+        h[3, 3] += 1.0 / (s2 * s2)
+        bvec[3] += (c2 - cc2) / (s2 * s2)
+        if sgp > 0.0:
+            h[0, 0] += 1.0 / (sgp * sgp)
+            bvec[0] += (gp - g) / (sgp * sgp)
+        for a2 in range(4):
+            for c in range(a2 + 1, 4):
+                h[a2, c] = h[c, a2]
+        h[0, 0] += 1e-12
+        ok, v00 = _solve4(h, bvec, x, lmat, wy, wz)
+        if not ok:
+            v00 = np.nan
+            break
+        if it == n_iter:
+            break
+        dg = min(max(x[0], -_MAX_STEP_G), _MAX_STEP_G)
+        gn = min(max(g + dg, g_lo), g_hi)
+        uu += x[1]
+        cc1 = max(cc1 + x[2], 1e-3)
+        cc2 = max(cc2 + x[3], 1e-3)
+        done = abs(gn - g) < _TOL_G
+        g = gn
+        if done or it == n_iter // 2 - 1:
+            if robust:
+                break  # the variance from this last matrix, a step of < _TOL_G away
+            robust = True
+    res[0] = g
+    res[1] = v00
+    res[2] = uu
+    res[3] = cc1
+    res[4] = cc2
+    res[5] = chi2
+
+
+@nb.njit(cache=True)
 def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
                dlog, locate, inv_h, wmax, g_lo, g_hi, net_g, net_v, c1, c2, s1, s2, gp, sgp,
-               fixed, h, bvec, x, lmat, wy, wz, out, u_sd):
+               fixed, h, bvec, x, lmat, wy, wz, out, u_sd, stat, res):
     """One pixel (module docstring). Writes ``(g, sd, c_on, c_off, flag)`` into ``out``.
-    ``u_sd > 0``: the pixel starts settled at its reference (``u ~ N(0, u_sd^2)``)."""
+    ``u_sd > 0``: the pixel starts settled at its reference (``u ~ N(0, u_sd^2)``).
+    ``stat`` (3) and ``res`` (6) are work space.
+
+    The fit: a start (:func:`_start`), Gauss-Newton; a coarse scan when the fit is poor;
+    and, when background events are modelled, the same again with the worst event taken
+    for a background event, kept when its fit is better by more than the price of one
+    such event (:data:`_OUTLIER_PENALTY` in chi-square units)."""
     su = (c1 + c2) / math.sqrt(12.0)
     mu_u = 0.5 * (c2 - c1)
     if u_sd > 0.0:
         su = u_sd
         mu_u = 0.0
-    flag = 0.0
-    if fixed or (0.0 < sgp < 1e-3):
-        g = gp
-    else:
-        # start: where the model's net level change matches the events'; then a bracket
-        # around it, widened until the moment sum changes sign, and false position
-        net = 0.0
-        for i in range(lo, hi):
-            net += c1 if p[i] > 0 else -c2
-        g = _initial(net, net_g, net_v)
-        width = 0.25
-        a = max(g - width, g_lo)
-        bb = min(g + width, g_hi)
-        fa = _moment(mode, a, t, p, lo, hi, dead, c1, c2, mu_u, exact, v0a, v0b, rows, g0,
-                     dlog, locate, inv_h, wmax)
-        fb = _moment(mode, bb, t, p, lo, hi, dead, c1, c2, mu_u, exact, v0a, v0b, rows, g0,
-                     dlog, locate, inv_h, wmax)
-        while fa > 0.0 and a > g_lo:
-            bb = a
-            fb = fa
-            width *= 2.0
-            a = max(a - width, g_lo)
-            fa = _moment(mode, a, t, p, lo, hi, dead, c1, c2, mu_u, exact, v0a, v0b, rows,
-                         g0, dlog, locate, inv_h, wmax)
-        while fb < 0.0 and bb < g_hi:
-            a = bb
-            fa = fb
-            width *= 2.0
-            bb = min(bb + width, g_hi)
-            fb = _moment(mode, bb, t, p, lo, hi, dead, c1, c2, mu_u, exact, v0a, v0b, rows,
-                         g0, dlog, locate, inv_h, wmax)
-        if fa >= 0.0:
-            g = a
-        elif fb <= 0.0:
-            g = bb
+    if fixed:
+        _gauss_newton(gp, lo, hi, t, p, mode, dead, sr2, tq2, eq2, 0.0, exact, v0a, v0b, rows,
+                      g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp,
+                      sgp, 0, -1, h, bvec, x, lmat, wy, wz, stat, res)
+        out[0] = gp
+        out[1] = math.sqrt(res[1]) if res[1] == res[1] and res[1] >= 0.0 else np.nan
+        out[2] = c1
+        out[3] = c2
+        out[4] = 0.0
+        return
+    best_g = np.nan
+    best_v = np.nan
+    best_c1 = c1
+    best_c2 = c2
+    best_obj = np.inf
+    n = hi - lo
+    skip = -1
+    tries = 2 if (lam > 0.0 and n >= 3) else 1
+    for attempt in range(tries):
+        if 0.0 < sgp < 1e-3:
+            g = gp
         else:
-            side = 0
-            for _ in range(40):
-                g = (a * fb - bb * fa) / (fb - fa)
-                if bb - a < 0.02:
-                    break
-                fg = _moment(mode, g, t, p, lo, hi, dead, c1, c2, mu_u, exact, v0a, v0b,
-                             rows, g0, dlog, locate, inv_h, wmax)
-                if fg > 0.0:
-                    bb = g
-                    fb = fg
-                    if side == -1:
-                        fa *= 0.5
-                    side = -1
-                else:
-                    a = g
-                    fa = fg
-                    if side == 1:
-                        fb *= 0.5
-                    side = 1
-    v00 = np.nan
-    uu = mu_u
-    cc1 = c1
-    cc2 = c2
-    n_iter = 0 if fixed else _MAX_ITER
-    for attempt in range(2):
-        uu = mu_u
-        cc1 = c1
-        cc2 = c2
-        chi2 = 0.0
-        # the bound (fixed) is the information of signal events: no outlier weights
-        robust = lam <= 0.0 or fixed
-        lam_fit = 0.0 if fixed else lam
-        for it in range(n_iter + 1):
-            h[:, :] = 0.0
-            bvec[:] = 0.0
-            # plain least squares until converged, then with the outlier weights (events
-            # far from a poor start would otherwise all be taken for outliers)
-            chi2 = _normal(mode, g, uu, cc1, cc2, t, p, lo, hi, dead, sr2, tq2, eq2,
-                           lam_fit if robust else 0.0, exact, v0a, v0b, rows, g0, dlog, locate,
-                           inv_h, wmax, h, bvec)
-            h[1, 1] += 1.0 / (su * su)
-            bvec[1] += (mu_u - uu) / (su * su)
-            h[2, 2] += 1.0 / (s1 * s1)
-            bvec[2] += (c1 - cc1) / (s1 * s1)
-            h[3, 3] += 1.0 / (s2 * s2)
-            bvec[3] += (c2 - cc2) / (s2 * s2)
-            if sgp > 0.0:
-                h[0, 0] += 1.0 / (sgp * sgp)
-                bvec[0] += (gp - g) / (sgp * sgp)
-            for a2 in range(4):
-                for c in range(a2 + 1, 4):
-                    h[a2, c] = h[c, a2]
-            h[0, 0] += 1e-12
-            ok, v00 = _solve4(h, bvec, x, lmat, wy, wz)
-            if not ok:
-                v00 = np.nan
+            g = _start(lo, hi, t, p, mode, dead, exact, v0a, v0b, rows, g0, dlog, locate,
+                       inv_h, wmax, g_lo, g_hi, net_g, net_v, c1, c2, mu_u, skip)
+        _gauss_newton(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
+                      g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp,
+                      sgp, _MAX_ITER, skip, h, bvec, x, lmat, wy, wz, stat, res)
+        n_eq = n - (1 if skip >= 0 else 0)
+        if res[5] > _CHI2_RESCUE * n_eq + 2.0:
+            # a poor fit (a wrong local optimum): restart from the best of a coarse scan
+            # (coarse to fine: steps of 4 x _SCAN_STEP over the range, then _SCAN_STEP
+            # around the best)
+            best = np.inf
+            gbest = res[0]
+            for level in range(2):
+                step = _SCAN_STEP * (4.0 if level == 0 else 1.0)
+                a0 = g_lo if level == 0 else max(g_lo, gbest - 4.0 * _SCAN_STEP)
+                a1 = g_hi if level == 0 else min(g_hi, gbest + 4.0 * _SCAN_STEP)
+                gs = a0
+                while gs <= a1:
+                    h[:, :] = 0.0
+                    bvec[:] = 0.0
+                    cs = _normal(mode, gs, mu_u, c1, c2, t, p, lo, hi, dead, sr2, tq2, eq2,
+                                 0.0, exact, v0a, v0b, rows, g0, dlog, locate, inv_h, wmax, h,
+                                 bvec, su * su, skip, stat)
+                    if cs < best:
+                        best = cs
+                        gbest = gs
+                    gs += step
+            _gauss_newton(gbest, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
+                          v0b, rows, g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, s1,
+                          s2, su, mu_u, gp, sgp, _MAX_ITER, skip, h, bvec, x, lmat, wy, wz,
+                          stat, res)
+        # the unweighted objective of this hypothesis (stat from the last pass)
+        obj = stat[2] + ((res[3] - c1) / s1) ** 2 + ((res[4] - c2) / s2) ** 2 \
+            + ((res[2] - mu_u) / su) ** 2 + (_OUTLIER_PENALTY if skip >= 0 else 0.0)
+        if obj < best_obj:
+            best_obj = obj
+            best_g = res[0]
+            best_v = res[1]
+            best_c1 = res[3]
+            best_c2 = res[4]
+        if attempt == 0:
+            if stat[0] < _OUTLIER_Z2 or stat[1] < 0:
                 break
-            if it == n_iter:
-                break
-            dg = min(max(x[0], -_MAX_STEP_G), _MAX_STEP_G)
-            gn = min(max(g + dg, g_lo), g_hi)
-            uu += x[1]
-            cc1 = max(cc1 + x[2], 1e-3)
-            cc2 = max(cc2 + x[3], 1e-3)
-            done = abs(gn - g) < _TOL_G
-            g = gn
-            if done or it == n_iter // 2 - 1:
-                if robust:
-                    break  # the variance from this last matrix, a step of < _TOL_G away
-                robust = True
-        if fixed or attempt == 1 or chi2 <= _CHI2_RESCUE * (hi - lo) + 2.0:
-            break
-        # a poor fit (a wrong local optimum): restart from the best point of a coarse scan
-        best = np.inf
-        gbest = g
-        gs = g_lo
-        while gs <= g_hi:
-            h[:, :] = 0.0
-            bvec[:] = 0.0
-            cs = _normal(mode, gs, mu_u, c1, c2, t, p, lo, hi, dead, sr2, tq2, eq2, 0.0,
-                         exact, v0a, v0b, rows, g0, dlog, locate, inv_h, wmax, h, bvec,
-                         su * su)
-            if cs < best:
-                best = cs
-                gbest = gs
-            gs += _SCAN_STEP
-        g = gbest
-    if not fixed and (g <= g_lo + 1e-9 or g >= g_hi - 1e-9):
+            skip = int(stat[1])
+    flag = 0.0
+    if best_g <= g_lo + 1e-9 or best_g >= g_hi - 1e-9:
         flag = 2.0
-    out[0] = g
-    out[1] = math.sqrt(v00) if v00 == v00 and v00 >= 0.0 else np.nan
-    out[2] = cc1
-    out[3] = cc2
+    out[0] = best_g
+    out[1] = math.sqrt(best_v) if best_v == best_v and best_v >= 0.0 else np.nan
+    out[2] = best_c1
+    out[3] = best_c2
     out[4] = flag
 
 
@@ -649,6 +746,8 @@ def _estimate_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
         wy = np.zeros(4)
         wz = np.zeros(4)
         res = np.zeros(5)
+        stat = np.zeros(3)
+        work = np.zeros(6)
         for px in range(blk * _BLOCK, min(npx, (blk + 1) * _BLOCK)):
             lo = off[px]
             hi = off[px + 1]
@@ -662,7 +761,7 @@ def _estimate_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
             _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
                        g0, dlog, locate, inv_h, wmax, g_lo, g_hi, net_g, net_v, con0[px],
                        coff0[px], max(scon[px], 1e-6), max(scoff[px], 1e-6), g_prior[px],
-                       sg_prior[px], fixed, h, bvec, x, lmat, wy, wz, res, u_sd)
+                       sg_prior[px], fixed, h, bvec, x, lmat, wy, wz, res, u_sd, stat, work)
             out_g[px] = res[0]
             out_sd[px] = res[1]
             out_con[px] = res[2]
