@@ -54,7 +54,7 @@ class CMap:
         key = cmap_key(method, k=k)
         if key in self.maps:
             return self.maps[key]
-        if method in ("ttfe", "count", "invert") and "raw" in self.maps:
+        if method in ("ttfe", "count", "invert", "ml") and "raw" in self.maps:
             # the raw map is the per-pixel threshold ratio itself (event counts)
             return self.maps["raw"]
         raise ValueError(

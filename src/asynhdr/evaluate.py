@@ -56,7 +56,7 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-DEFAULT_SCENE_METHODS: tuple[str, ...] = ("raw", "linear", "exp", "ttfe", "invert")
+DEFAULT_SCENE_METHODS: tuple[str, ...] = ("raw", "linear", "exp", "ttfe", "invert", "ml")
 """Event methods evaluated on scenes (all with the c-map)."""
 
 AUTO_EXPOSURE_FRACTION = 0.18
@@ -69,8 +69,15 @@ Progress = Callable[[str, int, int], None]
 def rig_mid_radiance(rig: Rig) -> float:
     """Middle of the rig's working range, ``L_const sqrt(CR_1)`` (lux): the geometric
     centre between ``L_const`` and ``L_const CR_1`` (see
-    :func:`asynhdr.scene.exposure_scale`)."""
-    return rig.l_const * math.sqrt(rig.contrast_ratio_1)
+    :func:`asynhdr.scene.exposure_scale`). A rig with its own waveforms (a designed one)
+    works from ``L_const min T2 / max T1`` to ``L_const max T2 / min T1``: the geometric
+    centre of those."""
+    if rig.t1 is None:
+        return rig.l_const * math.sqrt(rig.contrast_ratio_1)
+    w1, w2 = rig.waveforms()
+    lo = rig.l_const * float(w2.values.min()) / float(w1.values.max())
+    hi = rig.l_const * float(w2.values.max()) / float(w1.values.min())
+    return math.sqrt(lo * hi)
 
 
 @dataclass(frozen=True, eq=False)
