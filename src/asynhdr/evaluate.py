@@ -50,6 +50,7 @@ __all__ = [
     "DEFAULT_SCENE_METHODS",
     "SceneEvaluation",
     "calibrate_for_scenes",
+    "calibrate_thresholds_for_scenes",
     "evaluate_scene",
     "rig_mid_radiance",
 ]
@@ -121,6 +122,28 @@ def calibrate_for_scenes(*, width: int, height: int, sensor: SensorParams | str,
     return cmap
 
 
+def calibrate_thresholds_for_scenes(*, width: int, height: int, sensor: SensorParams | str,
+                                    rig: Rig | None = None, sensor_seed: int = 1,
+                                    seed: int = 300, engine: str = "exact"
+                                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-pixel ON and OFF thresholds for ``ml`` (:func:`asynhdr.calib.thresholds_from_flats`)
+    from flat fields 30x above and below ``L_const``, two of each, three cycles each."""
+    from asynhdr.calib import thresholds_from_flats
+
+    rig = rig or Rig()
+    sensor = get_preset(sensor) if isinstance(sensor, str) else sensor
+    rads = [rig.l_const * 30.0, rig.l_const / 30.0] * 2
+    seeds = np.random.SeedSequence(seed).spawn(len(rads))
+    caps = [simulate(flat_field(width=width, height=height, radiance=r, unit="lux"), rig=rig,
+                     sensor=sensor, n_cycles=3, rng=np.random.default_rng(sq),
+                     sensor_seed=sensor_seed, engine=engine) for r, sq in zip(rads, seeds,
+                                                                              strict=True)]
+    cal = thresholds_from_flats(caps, radiance=rads, rig=rig, sensor=sensor)
+    thr = cal.threshold_maps()
+    assert thr is not None
+    return thr
+
+
 def evaluate_scene(
     radiance_map: npt.ArrayLike,
     *,
@@ -131,6 +154,7 @@ def evaluate_scene(
     rig: Rig | None = None,
     scale: float | None = None,
     cmap: CMap | None = None,
+    ml_thresholds: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
     n_cycles: int = 2,
     methods: Sequence[str] = DEFAULT_SCENE_METHODS,
     k: float = DEFAULT_K,
@@ -142,7 +166,9 @@ def evaluate_scene(
     progress: Progress | None = None,
 ) -> SceneEvaluation:
     """Evaluate one scene (see the module's text). ``cmap``: from
-    :func:`calibrate_for_scenes` for the same sensor (made here when not given)."""
+    :func:`calibrate_for_scenes` for the same sensor (made here when not given).
+    ``ml_thresholds``: per-pixel ``(c_on, c_off, sigma)`` for ``ml``
+    (:func:`calibrate_thresholds_for_scenes`); without them ``ml`` uses the c-map."""
     rig = rig or Rig()
     sensor = get_preset(sensor) if isinstance(sensor, str) else sensor
     cam = get_frame_camera(frame_camera) if isinstance(frame_camera, str) else frame_camera
@@ -172,7 +198,11 @@ def evaluate_scene(
                    progress=lambda d, t: tick(f"{name}: simulate", d, t))
     images: dict[str, np.ndarray] = {}
     for i, m in enumerate(methods):
-        images[m] = finite_image(reconstruct(rec, method=m, k=k, cmap=cmap)[-1])[0]
+        if m == "ml" and ml_thresholds is not None:  # per-pixel ON and OFF thresholds
+            img = reconstruct(rec, method=m, ml_options={"thresholds": ml_thresholds})[-1]
+        else:
+            img = reconstruct(rec, method=m, k=k, cmap=cmap)[-1]
+        images[m] = finite_image(img)[0]
         tick(f"{name}: reconstruct", i + 1, len(methods))
     n_events = int(rec.events.size)
     del rec

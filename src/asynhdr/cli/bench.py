@@ -63,6 +63,11 @@ def _run_scenes(files: list[Path], out: Path, *, width: int, height: int, preset
     more: dict[str, Any] = {"rig": rig}
     if methods:
         more["methods"] = methods
+    if rig is not None and "ml" in (methods or ("ml",)):
+        from asynhdr.evaluate import calibrate_thresholds_for_scenes
+
+        more["ml_thresholds"] = calibrate_thresholds_for_scenes(
+            width=width, height=height, sensor=preset, rig=rig, sensor_seed=sensor_seed)
     summaries: list[dict[str, Any]] = []
     figures: dict[str, str] = {}
     for i, f in enumerate(files):
