@@ -81,9 +81,10 @@ def chart_figures(img: np.ndarray, scene: Any) -> dict[str, Any]:
             "snr_db": [float(x) for x in snrs], "finite_fraction": fin}
 
 
-def run_preset(preset: str, *, width: int, height: int, seed: int = 0) -> dict[str, Any]:
+def run_preset(preset: str, *, width: int, height: int, seed: int = 0,
+               rig: Any = None) -> dict[str, Any]:
     sensor = get_preset(preset)
-    rig = default_rig(preset)
+    rig = rig or default_rig(preset)
     scene = step_chart(width=width, height=height, densities=DENSITIES, illuminance_lux=L_TOP,
                        columns=8)
     t0 = time.perf_counter()
@@ -202,10 +203,17 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--width", type=int, default=400)
     ap.add_argument("--height", type=int, default=180)
     ap.add_argument("--no-speed", action="store_true")
+    ap.add_argument("--rig", type=Path, default=None,
+                    help="a rig file to use instead of each preset's designed rig")
     args = ap.parse_args(argv)
+    rig = None
+    if args.rig is not None:
+        from asynhdr.io.rigfile import read_rig
+
+        rig = read_rig(args.rig).rig
     results: dict[str, Any] = {"presets": {}}
     for p in args.presets:
-        results["presets"][p] = run_preset(p, width=args.width, height=args.height)
+        results["presets"][p] = run_preset(p, width=args.width, height=args.height, rig=rig)
     if not args.no_speed:
         results["speed"] = speed()
     args.out.mkdir(parents=True, exist_ok=True)

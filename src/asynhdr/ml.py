@@ -400,7 +400,8 @@ def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exac
     ``u`` (a scan at fixed ``u`` gives them the prior's spread). Event ``skip`` is taken
     for a background event: no equation of its own, but it resets the pixel (the walk of
     a pixel without dead time restarts at its level). ``stat`` receives the largest
-    ``(r / s)^2`` and the index of its event."""
+    ``(r / s)^2``, the index of its event, the unweighted chi-square and the number of
+    events the outlier weights take for signal."""
     chi2 = 0.0
     vs, dgs, _ = _eval(mode, g, -1, False, exact, v0a, v0b, rows, g0, dlog, locate, inv_h)
     n_on = 0.0
@@ -413,6 +414,7 @@ def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exac
     stat[0] = 0.0
     stat[1] = -1.0
     stat[2] = 0.0
+    stat[3] = 0.0
     for i in range(lo, hi):
         m = t[i]
         if m >= wmax:
@@ -440,7 +442,7 @@ def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exac
                 ref = vs + uu
                 dref = dgs
                 j1 = -1.0
-                var = dtc * dtc * tq2 + first_var
+                var = sr2 + dtc * dtc * tq2 + first_var
             else:
                 ref, dref, dte = _eval(mode, g, prev, True, exact, v0a, v0b, rows, g0, dlog,
                                        locate, inv_h)
@@ -475,7 +477,11 @@ def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exac
         if lam > 0.0:
             sd = math.sqrt(var)
             f = math.exp(-0.5 * z2) * abs(dtc) / (sd * 2.5066282746310002)
-            w *= f / (f + lam)
+            gam = f / (f + lam)
+            w *= gam
+            stat[3] += gam
+        else:
+            stat[3] += 1.0
         wr = w * r
         chi2 += wr * r
         b[0] -= wr * j0
@@ -641,7 +647,7 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
                fixed, h, bvec, x, lmat, wy, wz, out, u_sd, stat, res):
     """One pixel (module docstring). Writes ``(g, sd, c_on, c_off, flag)`` into ``out``.
     ``u_sd > 0``: the pixel starts settled at its reference (``u ~ N(0, u_sd^2)``).
-    ``stat`` (3) and ``res`` (6) are work space.
+    ``stat`` (4) and ``res`` (6) are work space.
 
     The fit: a start (:func:`_start`), Gauss-Newton; a coarse scan when the fit is poor;
     and, when background events are modelled, the same again with the worst event taken
@@ -669,8 +675,14 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
     best_obj = np.inf
     n = hi - lo
     skip = -1
-    tries = 2 if (lam > 0.0 and n >= 3) else 1
-    for attempt in range(tries):
+    n_try = 1
+    cand = 0
+    collapsed = False
+    attempt = 0
+    while attempt < n_try:
+        if attempt > 0:
+            skip = lo + cand if collapsed else skip
+            cand += 1
         if 0.0 < sgp < 1e-3:
             g = gp
         else:
@@ -714,10 +726,16 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
             best_v = res[1]
             best_c1 = res[3]
             best_c2 = res[4]
-        if attempt == 0:
-            if stat[0] < _OUTLIER_Z2 or stat[1] < 0:
-                break
-            skip = int(stat[1])
+        if attempt == 0 and lam > 0.0 and n >= 3:
+            if stat[3] < 0.5 * n:
+                # the outlier weights took most events for background: a collapsed fit;
+                # try each event in turn as the background event
+                collapsed = True
+                n_try = 1 + n
+            elif stat[0] >= _OUTLIER_Z2 and stat[1] >= 0:
+                skip = int(stat[1])
+                n_try = 2
+        attempt += 1
     flag = 0.0
     if best_g <= g_lo + 1e-9 or best_g >= g_hi - 1e-9:
         flag = 2.0
@@ -746,7 +764,7 @@ def _estimate_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
         wy = np.zeros(4)
         wz = np.zeros(4)
         res = np.zeros(5)
-        stat = np.zeros(3)
+        stat = np.zeros(4)
         work = np.zeros(6)
         for px in range(blk * _BLOCK, min(npx, (blk + 1) * _BLOCK)):
             lo = off[px]
