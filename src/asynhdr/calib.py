@@ -5,7 +5,8 @@
   held at ``ln L_flat``: what is left to estimate per pixel and cycle is ``(u, c_on,
   c_off)``, linear in the chain's equations, with the nominal thresholds as a weak prior
   (``prior_sigma``, 0.1 by default: the data decide). The estimates of all cycles and
-  captures are averaged per pixel, weighted by the events of that polarity each cycle
+  captures are averaged per pixel (cycles more than four robust sigmas from the
+  per-pixel median left out), weighted by the events of that polarity each cycle
   fired beyond the first (what identifies the threshold); the stated error is that
   weighted mean's, from the weighted scatter of the cycles (a cycle's estimate taken to
   have a variance inversely proportional to its weight). A pixel fires ON and OFF events in a cycle
@@ -42,6 +43,7 @@ import csv
 import logging
 import math
 import os
+import warnings
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -66,6 +68,9 @@ __all__ = [
 ]
 
 logger = logging.getLogger(__name__)
+
+THRESHOLD_ERROR_FLOOR = 0.002
+"""Added in quadrature to calibrated thresholds' stated errors when ``ml`` uses them."""
 
 DEFAULT_PRIOR_SIGMA = 0.1
 """Spread of the nominal thresholds used as the prior in the flat-field fit (log units):
@@ -124,8 +129,10 @@ class Calibration:
             sig = np.maximum(self.sigma_on, self.sigma_off).astype(np.float64)
         else:
             sig = np.full(self.c_on.shape, 0.005)
+        # the stated errors, in quadrature with a floor for what they miss (a cycle's fit
+        # that a background event spoilt, the model's own approximations)
         return (np.asarray(self.c_on, np.float64), np.asarray(self.c_off, np.float64),
-                np.maximum(sig, 1e-4))
+                np.sqrt(sig ** 2 + THRESHOLD_ERROR_FLOOR ** 2))
 
 
 # ----------------------------------------------------------------------------- thresholds
@@ -166,7 +173,8 @@ def thresholds_from_flats(
     priors = (on0, off0, sp, sp.copy())
     # per polarity: sums of weights, weighted values and squares (weight: that cycle's
     # events of the polarity, which is what identifies the threshold)
-    acc = np.zeros((2, 4, h, w))
+    vals: list[list[np.ndarray]] = [[], []]  # per polarity: each cycle's estimates
+    wts: list[list[np.ndarray]] = [[], []]  # and their weights
     n_cycles = 0
     for cap, lf in zip(caps, rads, strict=True):
         if (cap.height, cap.width) != (h, w):
@@ -184,17 +192,27 @@ def thresholds_from_flats(
             ok = res.flags[c] == 0
             n_on, n_off = _polarity_counts(cap, int(starts[c]), model.window_us, w, h)
             for k, (n_p, cc) in enumerate(((n_on, res.c_on[c]), (n_off, res.c_off[c]))):
-                wt = np.where(ok, np.maximum(n_p - 1, 0), 0).astype(np.float64)
-                v = cc.astype(np.float64)
-                acc[k, 0] += wt
-                acc[k, 1] += wt * v
-                acc[k, 2] += wt * v * v
-                acc[k, 3] += wt > 0
+                wts[k].append(np.where(ok, np.maximum(n_p - 1, 0), 0).astype(np.float64))
+                vals[k].append(cc.astype(np.float64))
         n_cycles += starts.size
     out = []
     counts = []
     for k, nom in ((0, sensor.threshold_on), (1, sensor.threshold_off)):
-        sw, s1, s2, nc = acc[k]
+        v = np.stack(vals[k])
+        wt = np.stack(wts[k])
+        # robust: cycles further than 4 robust sigmas (or 0.01) from the per-pixel median of
+        # the cycles that count are left out (a background event can spoil a cycle's fit)
+        masked = np.where(wt > 0, v, np.nan)
+        with np.errstate(invalid="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            med = np.nanmedian(masked, axis=0)
+            mad = np.nanmedian(np.abs(masked - med), axis=0) * 1.4826
+        keep = (wt > 0) & (np.abs(v - med) <= np.maximum(4.0 * np.nan_to_num(mad), 0.01))
+        wt = np.where(keep, wt, 0.0)
+        sw = wt.sum(axis=0)
+        s1 = (wt * v).sum(axis=0)
+        s2 = (wt * v * v).sum(axis=0)
+        nc = keep.sum(axis=0)
         with np.errstate(invalid="ignore", divide="ignore"):
             mean = np.where(sw > 0, s1 / sw, nom)
             # cycle i's estimate has variance sigma1^2 / w_i: the weighted mean's variance

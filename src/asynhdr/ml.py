@@ -318,7 +318,7 @@ def _eval(mode, g, m, end, exact, v0a, v0b, rows, g0, dlog, locate, inv_h):
 
 @nb.njit(cache=True, inline="always")
 def _moment(mode, g, t, p, lo, hi, dead, con, coff, u, exact, v0a, v0b, rows, g0, dlog,
-            locate, inv_h, wmax, skip):
+            locate, inv_h, wmax, skip, skip2):
     """``sum_i r_i(g)`` at fixed thresholds and ``u``: rises with ``g`` during a ramp. With a
     dead time the first event is left out (its reference, ``u``, is unknown), unless it
     is the only one. Event ``skip`` is a background event (see :func:`_normal`)."""
@@ -332,7 +332,7 @@ def _moment(mode, g, t, p, lo, hi, dead, con, coff, u, exact, v0a, v0b, rows, g0
         if m >= wmax:
             m = wmax - 1
         vc, _, _ = _eval(mode, g, m, False, exact, v0a, v0b, rows, g0, dlog, locate, inv_h)
-        if i == skip:
+        if i == skip or i == skip2:
             prev = m
             base = vc
             level = 0.0
@@ -393,7 +393,7 @@ def _solve4(h, b, x, lmat, y, z):
 
 @nb.njit(cache=True, inline="always")
 def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
-            rows, g0, dlog, locate, inv_h, wmax, h, b, first_var, skip, stat):
+            rows, g0, dlog, locate, inv_h, wmax, h, b, first_var, skip, skip2, stat):
     """Accumulate the Gauss-Newton normal equations of the events ``lo..hi`` at
     ``theta = (g, u, c_on, c_off)`` into ``h`` and ``b`` (``b = -sum w r J``); returns
     ``chi2 = sum w r^2``. ``first_var`` is added to the variance of the equations that hold
@@ -421,7 +421,7 @@ def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exac
             m = wmax - 1
         vc, dgc, dtc = _eval(mode, g, m, False, exact, v0a, v0b, rows, g0, dlog, locate,
                              inv_h)
-        if i == skip:
+        if i == skip or i == skip2:
             if dead:
                 prev = m
             else:
@@ -528,36 +528,36 @@ def _initial(net, net_g, net_v):
 
 @nb.njit(cache=True)
 def _start(lo, hi, t, p, mode, dead, exact, v0a, v0b, rows, g0, dlog, locate, inv_h, wmax,
-           g_lo, g_hi, net_g, net_v, c1, c2, mu_u, skip):
+           g_lo, g_hi, net_g, net_v, c1, c2, mu_u, skip, skip2):
     """The fit's starting ``g``: where the model's net level change matches the events';
     then a bracket around it, widened until the moment sum changes sign, and false
     position (Illinois) to 0.02."""
     net = 0.0
     for i in range(lo, hi):
-        if i != skip:
+        if i != skip and i != skip2:
             net += c1 if p[i] > 0 else -c2
     g = _initial(net, net_g, net_v)
     width = 0.25
     a = max(g - width, g_lo)
     bb = min(g + width, g_hi)
     fa = _moment(mode, a, t, p, lo, hi, dead, c1, c2, mu_u, exact, v0a, v0b, rows, g0, dlog,
-                 locate, inv_h, wmax, skip)
+                 locate, inv_h, wmax, skip, skip2)
     fb = _moment(mode, bb, t, p, lo, hi, dead, c1, c2, mu_u, exact, v0a, v0b, rows, g0, dlog,
-                 locate, inv_h, wmax, skip)
+                 locate, inv_h, wmax, skip, skip2)
     while fa > 0.0 and a > g_lo:
         bb = a
         fb = fa
         width *= 2.0
         a = max(a - width, g_lo)
         fa = _moment(mode, a, t, p, lo, hi, dead, c1, c2, mu_u, exact, v0a, v0b, rows, g0,
-                     dlog, locate, inv_h, wmax, skip)
+                     dlog, locate, inv_h, wmax, skip, skip2)
     while fb < 0.0 and bb < g_hi:
         a = bb
         fa = fb
         width *= 2.0
         bb = min(bb + width, g_hi)
         fb = _moment(mode, bb, t, p, lo, hi, dead, c1, c2, mu_u, exact, v0a, v0b, rows, g0,
-                     dlog, locate, inv_h, wmax, skip)
+                     dlog, locate, inv_h, wmax, skip, skip2)
     if fa >= 0.0:
         return a
     if fb <= 0.0:
@@ -568,7 +568,7 @@ def _start(lo, hi, t, p, mode, dead, exact, v0a, v0b, rows, g0, dlog, locate, in
         if bb - a < 0.02:
             break
         fg = _moment(mode, g, t, p, lo, hi, dead, c1, c2, mu_u, exact, v0a, v0b, rows, g0,
-                     dlog, locate, inv_h, wmax, skip)
+                     dlog, locate, inv_h, wmax, skip, skip2)
         if fg > 0.0:
             bb = g
             fb = fg
@@ -587,7 +587,7 @@ def _start(lo, hi, t, p, mode, dead, exact, v0a, v0b, rows, g0, dlog, locate, in
 @nb.njit(cache=True)
 def _gauss_newton(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
                   g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp,
-                  n_iter, skip, h, bvec, x, lmat, wy, wz, stat, res):
+                  n_iter, skip, skip2, h, bvec, x, lmat, wy, wz, stat, res):
     """Gauss-Newton from ``g``: plain least squares until converged (or half the
     iterations), then with the outlier weights. ``res`` gets ``(g, var_g, u, c_on, c_off,
     chi2)``; ``stat`` the last pass's largest ``z^2``, its event and the unweighted chi2."""
@@ -602,7 +602,7 @@ def _gauss_newton(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v
         bvec[:] = 0.0
         chi2 = _normal(mode, g, uu, cc1, cc2, t, p, lo, hi, dead, sr2, tq2, eq2,
                        lam if robust else 0.0, exact, v0a, v0b, rows, g0, dlog, locate, inv_h,
-                       wmax, h, bvec, 0.0, skip, stat)
+                       wmax, h, bvec, 0.0, skip, skip2, stat)
         h[1, 1] += 1.0 / (su * su)
         bvec[1] += (mu_u - uu) / (su * su)
         h[2, 2] += 1.0 / (s1 * s1)
@@ -661,7 +661,7 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
     if fixed:
         _gauss_newton(gp, lo, hi, t, p, mode, dead, sr2, tq2, eq2, 0.0, exact, v0a, v0b, rows,
                       g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp,
-                      sgp, 0, -1, h, bvec, x, lmat, wy, wz, stat, res)
+                      sgp, 0, -1, -1, h, bvec, x, lmat, wy, wz, stat, res)
         out[0] = gp
         out[1] = math.sqrt(res[1]) if res[1] == res[1] and res[1] >= 0.0 else np.nan
         out[2] = c1
@@ -675,23 +675,26 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
     best_obj = np.inf
     n = hi - lo
     skip = -1
+    skip2 = -1
     n_try = 1
     cand = 0
     collapsed = False
     attempt = 0
     while attempt < n_try:
         if attempt > 0:
-            skip = lo + cand if collapsed else skip
+            if collapsed:
+                skip = lo + cand
             cand += 1
         if 0.0 < sgp < 1e-3:
             g = gp
         else:
             g = _start(lo, hi, t, p, mode, dead, exact, v0a, v0b, rows, g0, dlog, locate,
-                       inv_h, wmax, g_lo, g_hi, net_g, net_v, c1, c2, mu_u, skip)
+                       inv_h, wmax, g_lo, g_hi, net_g, net_v, c1, c2, mu_u, skip, skip2)
         _gauss_newton(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
                       g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp,
-                      sgp, _MAX_ITER, skip, h, bvec, x, lmat, wy, wz, stat, res)
-        n_eq = n - (1 if skip >= 0 else 0)
+                      sgp, _MAX_ITER, skip, skip2, h, bvec, x, lmat, wy, wz, stat, res)
+        n_bg = (1 if skip >= 0 else 0) + (1 if skip2 >= 0 else 0)
+        n_eq = n - n_bg
         if res[5] > _CHI2_RESCUE * n_eq + 2.0:
             # a poor fit (a wrong local optimum): restart from the best of a coarse scan
             # (coarse to fine: steps of 4 x _SCAN_STEP over the range, then _SCAN_STEP
@@ -708,19 +711,20 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
                     bvec[:] = 0.0
                     cs = _normal(mode, gs, mu_u, c1, c2, t, p, lo, hi, dead, sr2, tq2, eq2,
                                  0.0, exact, v0a, v0b, rows, g0, dlog, locate, inv_h, wmax, h,
-                                 bvec, su * su, skip, stat)
+                                 bvec, su * su, skip, skip2, stat)
                     if cs < best:
                         best = cs
                         gbest = gs
                     gs += step
             _gauss_newton(gbest, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
                           v0b, rows, g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, s1,
-                          s2, su, mu_u, gp, sgp, _MAX_ITER, skip, h, bvec, x, lmat, wy, wz,
+                          s2, su, mu_u, gp, sgp, _MAX_ITER, skip, skip2, h, bvec, x, lmat, wy, wz,
                           stat, res)
         # the unweighted objective of this hypothesis (stat from the last pass)
         obj = stat[2] + ((res[3] - c1) / s1) ** 2 + ((res[4] - c2) / s2) ** 2 \
-            + ((res[2] - mu_u) / su) ** 2 + (_OUTLIER_PENALTY if skip >= 0 else 0.0)
-        if obj < best_obj:
+            + ((res[2] - mu_u) / su) ** 2 + _OUTLIER_PENALTY * n_bg
+        improved = obj < best_obj
+        if improved:
             best_obj = obj
             best_g = res[0]
             best_v = res[1]
@@ -735,6 +739,11 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
             elif stat[0] >= _OUTLIER_Z2 and stat[1] >= 0:
                 skip = int(stat[1])
                 n_try = 2
+        elif (attempt == n_try - 1 and not collapsed and skip >= 0 and skip2 < 0 and improved
+              and stat[0] >= _OUTLIER_Z2 and stat[1] >= 0 and n >= 5):
+            # a second background event in the same cycle
+            skip2 = int(stat[1])
+            n_try += 1
         attempt += 1
     flag = 0.0
     if best_g <= g_lo + 1e-9 or best_g >= g_hi - 1e-9:
