@@ -154,3 +154,43 @@ def test_designed_defaults_and_prediction() -> None:
     snr_p = predict(Rig(l_const=10.0), get_preset("ideal"), levels=levels)
     db_p, _, _ = _longest_run(levels, snr_p >= 20.0)
     assert db_p <= 90.0
+
+
+def test_thresholds_from_results_weights_by_events() -> None:
+    # hand-computed: pixel 0 fired 3 ON in cycle 0 (c_on 0.20) and 1 ON in cycle 1
+    # (c_on 0.24): (3 * 0.20 + 1 * 0.24) / 4 = 0.21; no OFF event: NaN
+    from asynhdr.calib import thresholds_from_results
+
+    c_on = np.array([[[0.20]], [[0.24]]])
+    c_off = np.array([[[0.3]], [[0.3]]])
+    n_on = np.array([[[3]], [[1]]])
+    n_off = np.zeros((2, 1, 1))
+    with np.errstate(invalid="ignore"):
+        on, off = thresholds_from_results(c_on, c_off, n_on, n_off)
+    assert on[0, 0] == pytest.approx(0.21)
+    assert np.isnan(off[0, 0])
+
+
+def test_ml_fits_thresholds_jointly_where_the_events_identify_them() -> None:
+    # one cycle of a flat field brighter and one darker than L_const: with a weak prior
+    # (0.1) on the thresholds, ml's own joint fit of (L, c_on, c_off) lands closer to the
+    # true thresholds than the nominal value on pixels with many events of a polarity
+    from asynhdr import ml
+
+    rig = default_rig("ideal")
+    sensor = get_preset("ideal")
+    w = 30
+    c_on = np.full((2, w), 0.2) + np.linspace(-0.05, 0.05, w)
+    c_off = np.full((2, w), 0.2) - np.linspace(-0.05, 0.05, w)
+    scene = np.array([[rig.l_const * 100.0] * w, [rig.l_const / 100.0] * w])
+    rec = simulate(scene, rig=rig, sensor=sensor, n_cycles=2, rng=0, thresholds=(c_on, c_off))
+    model = ml.ml_model(rig, sensor)
+    pri = ml.thresholds_prior(sensor, width=w, height=2, c_on=np.full((2, w), 0.2),
+                              c_off=np.full((2, w), 0.2), sigma=0.1)
+    res = ml.estimate(rec.events, width=w, height=2, starts_us=rig.cycle_starts_us(2),
+                      model=model, priors=pri)
+    # the bright row fires ON events: its c_on is identified; the dark row's c_off
+    err_on = np.abs(res.c_on[-1, 0] - c_on[0])
+    err_off = np.abs(res.c_off[-1, 1] - c_off[1])
+    assert np.median(err_on) < 0.01 < np.median(np.abs(c_on[0] - 0.2))
+    assert np.median(err_off) < 0.01
