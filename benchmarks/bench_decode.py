@@ -10,7 +10,7 @@
 2. A synthetic EVT 3.0 file of ``--big-gb`` GB written by ``Evt3Writer`` in
    chunks into a temporary folder, read back with ``iter_raw``: write and read
    events/s and the peak resident memory while streaming (sampled every 5 ms);
-   then reconstructed cycle by cycle (``reconstruct_file``, exp weighting, one
+   then reconstructed cycle by cycle (``reconstruct_cycles``, exp weighting, one
    image per 50 ms cycle, discarded) with its time and peak resident memory; then
    deleted.
 
@@ -265,14 +265,15 @@ def bench_big_file(
 
 
 def _bench_reconstruct_file(path: Path) -> dict[str, Any]:
-    """``reconstruct_file`` (exp weighting) over every cycle of the file: one image per
+    """``reconstruct_cycles`` (exp weighting) over every cycle of the file: one image per
     cycle, discarded; time and peak resident memory while it runs."""
-    from asynhdr.reconstruct import reconstruct_file
+    from asynhdr.io import open_source
+    from asynhdr.reconstruct import reconstruct_cycles
 
     rss_before = _rss_bytes()
     t0 = time.perf_counter()
     with _RssSampler() as sampler:
-        plan = reconstruct_file(path, method="exp")
+        plan = reconstruct_cycles(open_source(path), method="exp")
         t_plan = time.perf_counter() - t0
         n_img = sum(1 for _ in plan)
     t_all = time.perf_counter() - t0
@@ -322,7 +323,7 @@ def _print_table(rows: list[dict[str, Any]], big: dict[str, Any] | None) -> None
         )
         if "reconstruct_cycles" in big:
             print(
-                f"reconstruct_file (exp), cycle by cycle: {big['reconstruct_cycles']:,} "
+                f"reconstruct_cycles (exp), cycle by cycle: {big['reconstruct_cycles']:,} "
                 f"images of 1280x720 in {big['reconstruct_total_s']:.1f} s (plan "
                 f"{big['reconstruct_plan_s']:.1f} s, then "
                 f"{big['reconstruct_cycles_per_s']:.1f} cycles/s; "

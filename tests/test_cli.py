@@ -80,7 +80,7 @@ def test_bad_scene_writes_nothing(tmp_path: Path, scene: str, message: str) -> N
 
 @pytest.mark.parametrize(
     ("flag", "value", "message"),
-    [("--period-us", "0", "period_us"), ("--period-us", "-10", "period_us"),
+    [("--period-us", "0", "--period-us must"), ("--period-us", "-10", "--period-us must"),
      ("--preset", "nope", "unknown sensor preset")],
 )
 def test_bad_parameters_are_named(tmp_path: Path, flag: str, value: str, message: str) -> None:

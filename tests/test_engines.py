@@ -471,8 +471,12 @@ def test_moving_scene_needs_the_stepped_engine() -> None:
     rec = simulate(frames, rig=Rig(period_us=50_000), sensor="ideal", engine="stepped",
                    frame_times_us=times)
     assert rec.events.size > 0 and rec.width == 6 and rec.height == 4
+    # the default engine picks the stepped one for a moving scene; the exact one refuses
+    auto = simulate(frames, rig=Rig(period_us=50_000), sensor="ideal", frame_times_us=times)
+    assert auto.metadata["engine"] == "stepped"
+    assert auto.events.tobytes() == rec.events.tobytes()
     with pytest.raises(ValueError, match="stepped"):
-        simulate(frames, sensor="ideal", frame_times_us=times)
+        simulate(frames, sensor="ideal", frame_times_us=times, engine="exact")
     with pytest.raises(ValueError, match="frame_times_us"):
         simulate(frames, sensor="ideal")
 

@@ -119,7 +119,7 @@ def test_npy_rgba_and_negative_clip(tmp_path: Path, caplog: pytest.LogCaptureFix
     rgba[0, :3, :3] = -0.5  # three pixels of negative luminance
     rgba[1, 0, :3] = 0.0  # one of zero luminance
     np.save(tmp_path / "m.npy", rgba)
-    with caplog.at_level(logging.WARNING, logger="asynhdr.io.images"):
+    with caplog.at_level(logging.INFO, logger="asynhdr.io.images"):
         y, info = read_radiance(tmp_path / "m.npy")
     assert info["clipped_negative"] == 3 and info["non_positive"] == 4
     assert "clipped 3 negative" in caplog.text

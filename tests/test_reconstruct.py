@@ -41,13 +41,20 @@ def test_paper_formula_by_hand(method, f) -> None:
     rec = _rec(ev)
     win = CycleWindows(np.array([0, 1000]), 900.0)
     c, lc = 0.17, 3.0
-    img = reconstruct(rec, method=method, windows=win, threshold=c, l_const=lc)
+    img = reconstruct(rec, method=method, windows=win, threshold_on=c, threshold_off=c,
+                      l_const=lc)
     assert img.shape == (2, 1, 2)
     s00 = f(100 / 900) + f(250 / 900) - f(600 / 900)
     assert img[0, 0, 0] == pytest.approx(lc * math.exp(c * s00), rel=1e-6)
     assert img[0, 0, 1] == pytest.approx(lc, rel=1e-6)  # no events: L_const
     assert img[1, 0, 1] == pytest.approx(lc * math.exp(c * f(100 / 900)), rel=1e-6)
     assert img[1, 0, 0] == pytest.approx(lc, rel=1e-6)
+    # ON events weigh c_on, OFF events c_off
+    c_on, c_off = 0.134, 0.203
+    img = reconstruct(rec, method=method, windows=win, threshold_on=c_on, threshold_off=c_off,
+                      l_const=lc)
+    level = c_on * (f(100 / 900) + f(250 / 900)) - c_off * f(600 / 900)
+    assert img[0, 0, 0] == pytest.approx(lc * math.exp(level), rel=1e-6)
 
 
 def test_weightings_decrease_and_start_at_one() -> None:
@@ -64,7 +71,7 @@ def test_cmap_scales_the_threshold_per_pixel() -> None:
     rec = _rec(ev)
     win = CycleWindows(np.array([0]), 1000.0)
     cm = np.array([[0.5, 2.0]], dtype=np.float32)
-    img = reconstruct(rec, method="raw", windows=win, cmap=cm, threshold=0.2, l_const=1.0)
+    img = reconstruct(rec, method="raw", windows=win, cmap=cm, threshold_on=0.2, l_const=1.0)
     assert img[0, 0, 0] == pytest.approx(math.exp(0.2 * 0.5 * 2))
     assert img[0, 0, 1] == pytest.approx(math.exp(0.2 * 2.0 * 1))
 

@@ -12,12 +12,12 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from asynhdr.events import Recording, empty_triggers, make_events, make_triggers
-from asynhdr.io import open_recording, write_recording
-from asynhdr.io.windows import Window, iter_windows, windows_from_chunks
-from asynhdr.reconstruct import reconstruct, reconstruct_file, windows_for
+from asynhdr.io import open_recording, open_source, write_recording
+from asynhdr.reconstruct import reconstruct, reconstruct_cycles, windows_for
 from asynhdr.scene import step_chart
-from asynhdr.segment import cycles_from_events, cycles_from_file
+from asynhdr.segment import NoCyclesError, cycles_from_events, find_cycles
 from asynhdr.simulate import simulate
+from asynhdr.source import Window, windows_from_chunks
 
 
 def _events(t: list[int]) -> np.ndarray:
@@ -112,7 +112,7 @@ def test_file_cycle_by_cycle_equals_whole(tmp_path: Path, simulated: Recording, 
     path = tmp_path / f"rec{ext}"
     write_recording(path, simulated)
     whole = reconstruct(open_recording(path), method=method)
-    plan = reconstruct_file(path, method=method)
+    plan = reconstruct_cycles(open_source(path), method=method)
     assert len(plan) == whole.shape[0] == 4
     streamed = [(i, s, img) for i, s, img in plan]
     assert [i for i, _, _ in streamed] == [0, 1, 2, 3]
@@ -125,12 +125,13 @@ def test_file_without_triggers_takes_the_event_rate(tmp_path: Path,
     bare = Recording(simulated.events, simulated.width, simulated.height, empty_triggers())
     path = tmp_path / "no_triggers.raw"
     write_recording(path, bare)
-    cyc = cycles_from_file(path)
+    cyc = find_cycles(open_source(path))
     ref = cycles_from_events(bare.events)
     np.testing.assert_array_equal(cyc.start_us, ref.start_us)
     assert cyc.period_us == ref.period_us and cyc.source == "event_rate"
+    assert find_cycles(bare).start_us.tolist() == cyc.start_us.tolist()  # in memory: same
     whole = open_recording(path)
-    plan = reconstruct_file(path, method="exp")
+    plan = reconstruct_cycles(open_source(path), method="exp")
     np.testing.assert_array_equal(plan.windows.start_us, windows_for(whole).start_us)
     np.testing.assert_array_equal(np.stack([img for _, _, img in plan]),
                                   reconstruct(whole, method="exp"))
@@ -142,7 +143,7 @@ def test_iter_windows_reads_a_file(tmp_path: Path, simulated: Recording) -> None
     starts = np.array([0, 50_000, 120_000])
     stops = starts + 20_000
     t = simulated.events["t"]
-    for w in iter_windows(path, starts, stops):
+    for w in open_source(path).windows(starts, stops):
         np.testing.assert_array_equal(
             w.events, simulated.events[(t >= starts[w.i]) & (t < stops[w.i])])
         assert w.triggers["t"].tolist() == [s for s in (0, 50_000, 100_000, 150_000)
@@ -159,8 +160,8 @@ def test_an_unmodulated_file_is_refused_not_cut_at_random(tmp_path: Path) -> Non
                      np.sort(rng.integers(0, 2_000_000, n)))
     path = tmp_path / "steady.h5"
     write_recording(path, Recording(ev, 32, 24))
-    with pytest.raises(ValueError, match=r"no periodic bursts .* confidence 0\.\d\d < 0\.2.*"
-                                         r"--period-us"):
-        reconstruct_file(path)
-    with pytest.raises(ValueError, match=r"not be modulated; treat it as one ramp"):
-        reconstruct_file(path, period_us=50_000)
+    with pytest.raises(NoCyclesError, match=r"no modulation in the event rate .*confidence "
+                                            r"0\.\d\d.*give the modulation period"):
+        reconstruct_cycles(open_source(path))
+    with pytest.raises(NoCyclesError, match=r"; treat the recording as one ramp"):
+        reconstruct_cycles(open_source(path), period_us=50_000)

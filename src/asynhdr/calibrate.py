@@ -1,17 +1,22 @@
 """Calibration: the per-pixel threshold correction map (c-map) from flat-field captures.
 
-On a uniformly lit field every pixel sees the same log-irradiance swing, so a pixel
-whose threshold is ``c_p = c * g_p`` fires ``1/g_p`` times as many (weighted) events
-as a nominal one. Averaging the weighted sums ``S_p`` of ``N`` captures (and of all
-their cycles) and taking::
+On a uniformly lit field every pixel sees the same log-irradiance swing ``D``. A pixel
+whose thresholds are ``g_p`` times the nominal ones reaches it with weighted sums
+``S_on``, ``S_off`` such that ``g_p (c_on S_on,p - c_off S_off,p) = D``. Averaging the
+level ``l_p = c_on S_on,p - c_off S_off,p`` of ``N`` captures (and of all their cycles)
+and taking::
 
-    cmap_p = median_q(S_q) / S_p
+    cmap_p = median_q(l_q) / l_p
 
-gives the factor that turns the nominal ``c`` into the pixel's own ``c * cmap_p`` in
-``img = L_const exp(c cmap S)`` (Wu et al. 2024, section 2.3: "iterative acquisition of
-images from a uniformly illuminated light box, followed by the averaging of the
-obtained results"). Because each weighting sums the events differently, one map is
-estimated per weighting.
+gives the factor that turns the nominal thresholds into the pixel's own in
+``img = L_const exp(cmap (c_on S_on - c_off S_off))`` (Wu et al. 2024, section 2.3:
+"iterative acquisition of images from a uniformly illuminated light box, followed by
+the averaging of the obtained results"). Because each weighting sums the events
+differently, one map is estimated per weighting; the ``raw`` map (events counted) is the
+per-pixel threshold ratio itself, which the methods that use thresholds directly take
+(their record's ``cmap`` kind is ``"threshold"``).
+
+Captures are :class:`~asynhdr.source.Source` objects or recordings, read one at a time.
 """
 
 from __future__ import annotations
@@ -24,7 +29,16 @@ from typing import Any
 import numpy as np
 
 from asynhdr.events import Recording
-from asynhdr.reconstruct import DEFAULT_K, WEIGHTINGS, CycleWindows, weighted_sums, windows_for
+from asynhdr.reconstruct import (
+    DEFAULT_K,
+    METHODS,
+    WEIGHTINGS,
+    CycleWindows,
+    thresholds_of,
+    weighted_sums,
+    windows_for,
+)
+from asynhdr.source import Progress, Source, as_source
 
 __all__ = ["CMap", "cmap_key", "estimate_cmap"]
 
@@ -42,7 +56,7 @@ class CMap:
 
     Attributes
     ----------
-    maps : key (see ``cmap_key``) -> map. Multiply the nominal threshold by it.
+    maps : key (see ``cmap_key``) -> map. Multiply the nominal thresholds by it.
     metadata : how it was made (flat-field radiance, number of captures and cycles).
     """
 
@@ -50,16 +64,19 @@ class CMap:
     metadata: dict[str, Any] = field(default_factory=dict)
 
     def for_method(self, method: str, *, k: float = DEFAULT_K) -> np.ndarray | None:
-        """The map for ``method``; ``None`` (with a warning) for methods without one."""
-        key = cmap_key(method, k=k)
+        """The map ``method`` takes (its record's ``cmap`` kind: its own weighting's, or
+        the threshold ratio ``raw``); None for a method that takes none."""
+        m = METHODS.get(method)
+        if m is None:
+            raise ValueError(f"unknown method {method!r}; expected one of {list(METHODS)}")
+        if m.cmap is None:
+            return None
+        key = cmap_key(method, k=k) if m.cmap == "weighting" else "raw"
         if key in self.maps:
             return self.maps[key]
-        if method in ("ttfe", "count", "invert", "ml") and "raw" in self.maps:
-            # the raw map is the per-pixel threshold ratio itself (event counts)
-            return self.maps["raw"]
         raise ValueError(
-            f"the c-map has no map for {key!r}; it has {sorted(self.maps)}. "
-            "Calibrate with this method (and k) too."
+            f"the c-map has no map for {key!r} (method {method!r}); it has "
+            f"{sorted(self.maps)}. Calibrate with this method (and k) too."
         )
 
     @property
@@ -69,48 +86,67 @@ class CMap:
 
 
 def estimate_cmap(
-    captures: Sequence[Recording] | Iterable[Recording],
+    captures: Sequence[Source | Recording] | Iterable[Source | Recording],
     *,
     methods: Sequence[str] = tuple(WEIGHTINGS),
     k: float = DEFAULT_K,
     windows: CycleWindows | None = None,
-    min_abs_sum: float = 1e-6,
+    threshold_on: float | None = None,
+    threshold_off: float | None = None,
+    min_abs_level: float = 1e-6,
+    progress: Progress | None = None,
 ) -> CMap:
     """Estimate the c-map from flat-field captures.
 
     Parameters
     ----------
-    captures : recordings of a uniform field (each may hold several cycles).
+    captures : sources or recordings of a uniform field (each may hold several cycles),
+        read one at a time.
     methods : weightings to calibrate (one map each).
     k : the exponential weighting's ``k``.
     windows : integration windows (default: each capture's own, see ``windows_for``).
-    min_abs_sum : pixels whose mean weighted sum is smaller than this (no events) get 1.
+    threshold_on, threshold_off : nominal thresholds (default: the first capture's
+        sensor, see :func:`asynhdr.reconstruct.thresholds_of`).
+    min_abs_level : pixels whose mean level is smaller than this (no events) get 1.
+    progress : ``progress("calibrate", captures_done, n_captures or None)``.
 
     Raises ``ValueError`` when there are no captures or their geometries differ.
     """
-    caps = list(captures)
-    if not caps:
-        raise ValueError("estimate_cmap: no flat-field captures given")
-    shape = (caps[0].height, caps[0].width)
-    for i, c in enumerate(caps):
-        if (c.height, c.width) != shape:
-            raise ValueError(f"estimate_cmap: capture {i} is {c.width}x{c.height}, "
-                             f"expected {shape[1]}x{shape[0]}")
     for m in methods:
         if m not in WEIGHTINGS:
             raise ValueError(f"estimate_cmap: unknown weighting {m!r}; "
                              f"expected some of {list(WEIGHTINGS)}")
-    maps: dict[str, np.ndarray] = {}
-    n_cycles = 0
-    sums: dict[str, np.ndarray] = {m: np.zeros(shape, np.float64) for m in methods}
-    for cap in caps:
-        win = windows or windows_for(cap)
+    total = len(captures) if isinstance(captures, Sequence) else None
+    shape: tuple[int, int] | None = None
+    c: tuple[float, float] | None = None
+    sums: dict[str, np.ndarray] = {}
+    n_cycles = n_caps = 0
+    for i, cap in enumerate(captures):
+        src = as_source(cap, name=f"capture {i}")
+        if shape is None:
+            shape = (src.height, src.width)
+            c0 = thresholds_of(src)
+            c = (c0[0] if threshold_on is None else float(threshold_on),
+                 c0[1] if threshold_off is None else float(threshold_off))
+            sums = {m: np.zeros(shape, np.float64) for m in methods}
+        elif (src.height, src.width) != shape:
+            raise ValueError(f"estimate_cmap: {src.name} is {src.width}x{src.height}, "
+                             f"expected {shape[1]}x{shape[0]}")
+        assert c is not None
+        win = windows or windows_for(src)
+        rec = src.read()
         n_cycles += win.n_cycles
+        n_caps += 1
         for m in methods:
-            sums[m] += weighted_sums(cap, win, method=m, k=k).sum(axis=0)
+            sums[m] += weighted_sums(rec, win, method=m, k=k, c_on=c[0], c_off=c[1]).sum(axis=0)
+        if progress is not None:
+            progress("calibrate", n_caps, total)
+    if shape is None or c is None:
+        raise ValueError("estimate_cmap: no flat-field captures given")
+    maps: dict[str, np.ndarray] = {}
     for m in methods:
         mean = sums[m] / n_cycles
-        valid = np.abs(mean) > min_abs_sum
+        valid = np.abs(mean) > min_abs_level
         ref = float(np.median(mean[valid])) if valid.any() else 0.0
         cm = np.ones(shape, np.float64)
         if ref != 0.0:
@@ -121,9 +157,11 @@ def estimate_cmap(
                 logger.warning("c-map %s: %d pixels of opposite sign set to 1", m, int(bad.sum()))
         maps[cmap_key(m, k=k)] = cm.astype(np.float32)
     meta: dict[str, Any] = {
-        "n_captures": len(caps),
+        "n_captures": n_caps,
         "n_cycles": n_cycles,
         "methods": list(methods),
         "k": float(k),
+        "threshold_on": c[0],
+        "threshold_off": c[1],
     }
     return CMap(maps=maps, metadata=meta)

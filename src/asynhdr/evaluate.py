@@ -195,7 +195,7 @@ def evaluate_scene(
                                     sensor_seed=sensor_seed, engine=engine)
     rec = simulate(scene, rig=rig, sensor=sensor, n_cycles=n_cycles,
                    rng=np.random.default_rng(gen[0]), sensor_seed=sensor_seed, engine=engine,
-                   progress=lambda d, t: tick(f"{name}: simulate", d, t))
+                   progress=lambda _s, d, t: tick(f"{name}: simulate", d, t))
     images: dict[str, np.ndarray] = {}
     for i, m in enumerate(methods):
         if m == "ml" and ml_thresholds is not None:  # per-pixel ON and OFF thresholds

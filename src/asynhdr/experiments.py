@@ -320,10 +320,10 @@ def run_chart_experiment(
     central_rois(scene.rois)  # fail early, before simulating, when patches are too small
     seeds = np.random.SeedSequence(seed).spawn(2 + n_flat)
 
-    def cb(stage: str) -> Callable[[int, int], None] | None:
+    def cb(stage: str) -> Callable[[str, int, int], None] | None:
         if progress is None:
             return None
-        return lambda d, t: progress(stage, d, t)
+        return lambda _s, d, t: progress(stage, d, t)
 
     rec = simulate(scene, rig=rig, sensor=sensor, n_cycles=n_cycles,
                    rng=np.random.default_rng(seeds[0]), sensor_seed=sensor_seed, engine=engine,

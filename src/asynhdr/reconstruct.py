@@ -2,10 +2,13 @@
 
 The paper's temporal-weighted reconstruction (Wu et al. 2024, Eq. 14)::
 
-    img(x, y) = L_const * exp( c * sum_i f(t_i) * p_i )      over the pixel's events
+    img(x, y) = L_const * exp( sum_i f(t_i) * c_i * p_i )      over the pixel's events
 
 with ``t`` normalised to the integration window of the cycle (0 at the cycle start,
-1 at the end of the ramp) and a decreasing weight ``f`` chosen by name:
+1 at the end of the ramp), ``c_i`` the pixel's ON threshold for an ON event and its
+OFF threshold for an OFF event (the paper has one ``c``; a sensor whose thresholds
+differ, such as the DAVIS346 with 0.134 ON and 0.203 OFF, needs both) and a
+decreasing weight ``f`` chosen by name:
 
 =============  ===========================  ==========================
 name           ``f(t)``                     paper
@@ -17,21 +20,25 @@ name           ``f(t)``                     paper
 ``exp``        ``2^(-k t)`` (``k = 10``)    exponential (Eq. 20)
 =============  ===========================  ==========================
 
-A c-map (per-pixel threshold correction, see ``asynhdr.calibrate``) multiplies ``c``
-pixel by pixel. The paper's ``img`` is monotone in radiance but not linear in it.
+A c-map (per-pixel threshold correction, see ``asynhdr.calibrate``) multiplies both
+thresholds pixel by pixel. The paper's ``img`` is monotone in radiance but not linear in
+it. A pixel whose ``L_const exp(level)`` float32 cannot hold (hundreds more ON than OFF
+events: a hot pixel, or a window far longer than a ramp; a cycle swings the log
+irradiance by at most the log of the panel's contrast ratio, about 35 thresholds) is
+set to the largest float32, and how many were is logged.
 
 Baselines:
 
 - ``ttfe`` (time to first event, the EvTemMap approach): grey from the time ``u`` of
   each pixel's first ON event in the cycle. With the rig's waveforms known, the first
-  ON fires when ``T1(u) L + T2(u) L_const = e^c (T1(0) L + T2(0) L_const)``, so::
+  ON fires when ``T1(u) L + T2(u) L_const = e^c_on (T1(0) L + T2(0) L_const)``, so::
 
-      L = L_const * (e^c T2(0) - T2(u)) / (T1(u) - e^c T1(0))
+      L = L_const * (e^c_on T2(0) - T2(u)) / (T1(u) - e^c_on T1(0))
 
   which is linear in radiance (the event time is taken half a µs after its floored
   timestamp). Without a rig, ``L`` is taken ``∝ 1/u`` (a linear ramp).
   Pixels with no ON event in the window are 0.
-- ``count``: ``L_const * exp(c * n_on)`` from the number of ON events alone.
+- ``count``: ``L_const * exp(c_on * n_on)`` from the number of ON events alone.
 
 Radiometric inversion (``invert``): every event is an equation for ``L``. After
 ``n_on`` ON and ``n_off`` OFF events since the cycle start, the pixel's irradiance has
@@ -49,38 +56,46 @@ photoreceptor, background events); linear radiance with a per-pixel uncertainty,
 where a pixel has no information. It needs the rig and the sensor model (the recording's
 metadata, or a rig file, :mod:`asynhdr.io.rigfile`).
 
-Per-pixel sums are one pass over the time-sorted events (numba), scatter-adding into
-``(n_cycles, height * width)``.
+Methods are records (:class:`Method` in :data:`METHODS`): a new method is one function
+and one entry. Per-pixel sums are one pass over the time-sorted events (numba),
+scatter-adding ``f(u) c_on`` or ``-f(u) c_off`` into ``(n_cycles, height * width)``.
+
+Everything here takes a :class:`~asynhdr.source.Source` (or a Recording) and never
+opens a file: :func:`reconstruct` works on a whole recording in memory,
+:func:`reconstruct_cycles` streams a source one cycle at a time.
 """
 
 from __future__ import annotations
 
 import logging
 import math
-import os
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numba as nb
 import numpy as np
 
 from asynhdr.events import Recording, sort_events
 from asynhdr.rig import Rig
-
-if TYPE_CHECKING:
-    from asynhdr.calibrate import CMap
-    from asynhdr.segment import Cycles
+from asynhdr.segment import Cycles, find_cycles
+from asynhdr.sensor.params import PRESETS, SensorParams
+from asynhdr.source import Progress, Source, as_source
 
 __all__ = [
+    "DEFAULT_K",
+    "DEFAULT_METHOD",
     "METHODS",
+    "RELATIVE_L_CONST",
     "WEIGHTINGS",
+    "CycleImages",
     "CycleWindows",
-    "FileReconstruction",
+    "Method",
     "first_on_phase",
-    "plan_windows",
     "reconstruct",
-    "reconstruct_file",
+    "reconstruct_cycles",
+    "rig_of",
+    "thresholds_of",
     "weight",
     "weighted_sums",
     "windows_for",
@@ -88,32 +103,22 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-WEIGHTINGS: dict[str, int] = {"raw": 0, "linear": 1, "quadratic": 2, "poly5": 3, "exp": 4}
-"""The paper's temporal weightings, name -> kernel code."""
-
-METHODS: tuple[str, ...] = (*WEIGHTINGS, "ttfe", "count", "invert", "ml")
-"""Every reconstruction method, selected by name."""
+DEFAULT_METHOD = "exp"
+"""The method used when none is named: the paper's best weighting."""
 
 DEFAULT_K = 10.0
 """The exponential weighting's ``k`` (the paper chose 10)."""
 
-DEFAULT_THRESHOLD = 0.2
-"""Contrast threshold assumed when a recording does not say (v2e's nominal 0.2)."""
+RELATIVE_L_CONST = 1.0
+"""``L_const`` when the recording has no rig: images are then relative to the reference
+radiance (the unit the metadata's ``radiance_unit`` says, ``"relative"`` by default)."""
 
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+LOG_FLOAT32_MAX = math.log(FLOAT32_MAX)
+"""``ln`` of the largest float32 (3.4e38): the highest log radiance an image holds."""
 
-@nb.njit(cache=True, inline="always")
-def _w(code: int, u: float, k: float) -> float:
-    if code == 0:
-        return 1.0
-    if code == 1:
-        return 1.0 - u
-    if code == 2:
-        return (1.0 - u) * (1.0 - u)
-    if code == 3:
-        v = 1.0 - u
-        v2 = v * v
-        return v2 * v2 * v
-    return 2.0 ** (-k * u)
+WEIGHTINGS: dict[str, int] = {"raw": 0, "linear": 1, "quadratic": 2, "poly5": 3, "exp": 4}
+"""The paper's temporal weightings, name -> kernel code."""
 
 
 def weight(method: str, u: np.ndarray, *, k: float = DEFAULT_K) -> np.ndarray:
@@ -132,10 +137,14 @@ def weight(method: str, u: np.ndarray, *, k: float = DEFAULT_K) -> np.ndarray:
 
 @dataclass(frozen=True)
 class CycleWindows:
-    """Integration windows: cycle ``i`` covers ``[start_us[i], start_us[i] + window_us)``."""
+    """Integration windows: cycle ``i`` covers ``[start_us[i], start_us[i] + window_us)``.
+
+    ``warmup``: how many leading cycles are warm-up cycles (see
+    :func:`asynhdr.segment.find_cycles`)."""
 
     start_us: np.ndarray
     window_us: float
+    warmup: int = 0
 
     def __post_init__(self) -> None:
         s = np.asarray(self.start_us, dtype=np.int64)
@@ -157,10 +166,14 @@ class CycleWindows:
         return int(self.start_us.size)
 
 
+# --------------------------------------------------------------------------- sums
+
+
 @nb.njit(cache=True, parallel=True)
-def _sums_kernel(x, y, p, t, starts, window_us, width, table, on_only, lo, hi, c0, row0,
+def _sums_kernel(x, y, p, t, starts, window_us, width, table, w_on, w_off, lo, hi, c0, row0,
                  acc, bad):
-    """Scatter-add ``table[t - start] * p`` per cycle and pixel (events sorted by time).
+    """Scatter-add ``table[t - start] * w`` per cycle and pixel (events sorted by time),
+    ``w = w_on`` for an ON event and ``-w_off`` for an OFF event.
 
     Events ``lo[k] .. hi[k]`` form part ``k``, summed in parallel into its own rows of
     ``acc`` (row ``row0[k] + cycle - c0[k]``), so no two threads add to one place.
@@ -185,18 +198,13 @@ def _sums_kernel(x, y, p, t, starts, window_us, width, table, on_only, lo, hi, c
             dt = ti - starts[c]
             if dt < 0 or dt >= n_tab or dt >= window_us:
                 continue
-            pol = p[i]
             j = np.int64(y[i]) * width + x[i]
             r = row0[k] + c - c0[k]
-            if on_only:
-                if pol > 0:
-                    acc[r, j] += 1.0
-            else:
-                acc[r, j] += table[dt] * pol
+            acc[r, j] += table[dt] * (w_on if p[i] > 0 else -w_off)
 
 
 def _scatter_sums(ev: np.ndarray, windows: CycleWindows, width: int, npx: int,
-                  table: np.ndarray, on_only: bool) -> tuple[np.ndarray, bool]:
+                  table: np.ndarray, w_on: float, w_off: float) -> tuple[np.ndarray, bool]:
     """Run ``_sums_kernel`` over ``ev`` in parts; ``(sums, sorted)``."""
     n = int(ev.size)
     starts = windows.start_us
@@ -214,7 +222,7 @@ def _scatter_sums(ev: np.ndarray, windows: CycleWindows, width: int, npx: int,
     acc = np.zeros((int(rows.sum()), npx), dtype=np.float64)
     bad = np.empty(parts, dtype=np.int64)
     _sums_kernel(ev["x"], ev["y"], ev["p"], t, starts, float(windows.window_us), width,
-                 table, on_only, lo, hi, c0, row0, acc, bad)
+                 table, float(w_on), float(w_off), lo, hi, c0, row0, acc, bad)
     if (bad >= 0).any():
         return acc, False
     if parts == 1 and rows[0] == windows.n_cycles and c0[0] == 0:
@@ -223,6 +231,47 @@ def _scatter_sums(ev: np.ndarray, windows: CycleWindows, width: int, npx: int,
     for k in range(parts):
         out[c0[k]:c1[k] + 1] += acc[row0[k]:row0[k] + rows[k]]
     return out, True
+
+
+def _sorted_events(rec: Recording) -> np.ndarray:
+    ev, moved = sort_events(rec.events)
+    if moved:
+        logger.warning("events were not sorted by time: %d moved by a stable sort", moved)
+    return ev
+
+
+def weighted_sums(
+    rec: Recording,
+    windows: CycleWindows,
+    *,
+    method: str = DEFAULT_METHOD,
+    k: float = DEFAULT_K,
+    c_on: float = 1.0,
+    c_off: float = 1.0,
+) -> np.ndarray:
+    """``S = sum_i f(u_i) c_i p_i`` per cycle and pixel, float64 ``(n_cycles, height,
+    width)``, with ``c_i = c_on`` for an ON event and ``c_off`` for an OFF event (by
+    default 1: the paper's weighted sum; the nominal thresholds: the level ``c_on S_on -
+    c_off S_off`` that Eq. 14 exponentiates).
+
+    ``method`` is a weighting name, or ``"count"`` (ON events counted, times ``c_on``).
+    Times are whole µs, so ``f`` is tabulated once over the window's offsets and each
+    event costs one look-up and one add; parts of the stream are summed on separate
+    threads. Unsorted events are sorted stably first (and reported).
+    """
+    if method not in WEIGHTINGS and method != "count":
+        raise ValueError(f"unknown weighting {method!r}; expected one of "
+                         f"{[*WEIGHTINGS, 'count']}")
+    n_tab = math.ceil(windows.window_us)
+    table = (np.ones(n_tab) if method == "count"
+             else weight(method, np.arange(n_tab) / windows.window_us, k=k))
+    w_off = 0.0 if method == "count" else c_off
+    npx = rec.height * rec.width
+    out, ok = _scatter_sums(rec.events, windows, rec.width, npx, table, c_on, w_off)
+    if not ok:
+        out, ok = _scatter_sums(_sorted_events(rec), windows, rec.width, npx, table, c_on,
+                                w_off)
+    return out.reshape(windows.n_cycles, rec.height, rec.width)
 
 
 @nb.njit(cache=True)
@@ -245,41 +294,6 @@ def _first_on_kernel(x, y, p, t, starts, window_us, width, out):
             out[c, j] = u
 
 
-def _sorted_events(rec: Recording) -> np.ndarray:
-    ev, moved = sort_events(rec.events)
-    if moved:
-        logger.warning("events were not sorted by time: %d moved by a stable sort", moved)
-    return ev
-
-
-def weighted_sums(
-    rec: Recording,
-    windows: CycleWindows,
-    *,
-    method: str = "exp",
-    k: float = DEFAULT_K,
-) -> np.ndarray:
-    """``S = sum_i f(u_i) p_i`` per cycle and pixel, float64 ``(n_cycles, height, width)``.
-
-    ``method`` is a weighting name, or ``"count"`` (the number of ON events). Times are
-    whole µs, so ``f`` is tabulated once over the window's offsets and each event costs
-    one look-up and one add; parts of the stream are summed on separate threads.
-    Unsorted events are sorted stably first (and reported).
-    """
-    if method not in WEIGHTINGS and method != "count":
-        raise ValueError(f"unknown weighting {method!r}; expected one of "
-                         f"{[*WEIGHTINGS, 'count']}")
-    n_tab = math.ceil(windows.window_us)
-    table = (np.ones(n_tab) if method == "count"
-             else weight(method, np.arange(n_tab) / windows.window_us, k=k))
-    npx = rec.height * rec.width
-    out, ok = _scatter_sums(rec.events, windows, rec.width, npx, table, method == "count")
-    if not ok:
-        out, ok = _scatter_sums(_sorted_events(rec), windows, rec.width, npx, table,
-                                method == "count")
-    return out.reshape(windows.n_cycles, rec.height, rec.width)
-
-
 def first_on_phase(rec: Recording, windows: CycleWindows) -> np.ndarray:
     """Phase ``u`` in [0, 1) of each pixel's first ON event per cycle; NaN where none."""
     ev = _sorted_events(rec)
@@ -287,154 +301,6 @@ def first_on_phase(rec: Recording, windows: CycleWindows) -> np.ndarray:
     _first_on_kernel(ev["x"], ev["y"], ev["p"], ev["t"], windows.start_us,
                      float(windows.window_us), rec.width, out)
     return out.reshape(windows.n_cycles, rec.height, rec.width)
-
-
-def rig_of(rec: Recording) -> Rig | None:
-    """The rig a simulated recording was made with, from its metadata."""
-    return _rig_from(rec.metadata)
-
-
-def _rig_from(metadata: dict[str, Any]) -> Rig | None:
-    d = metadata.get("rig")
-    return Rig.from_metadata(d) if isinstance(d, dict) else None
-
-
-def threshold_of(rec: Recording) -> float:
-    """The nominal contrast threshold of the recording's sensor (``DEFAULT_THRESHOLD``
-    when the metadata does not say)."""
-    s = rec.metadata.get("sensor")
-    if isinstance(s, dict) and "threshold_on" in s:
-        return float(s["threshold_on"])
-    return DEFAULT_THRESHOLD
-
-
-def windows_for(
-    rec: Recording,
-    *,
-    window_us: float | None = None,
-    period_us: float | None = None,
-    single: bool = False,
-    rig: Rig | None = None,
-) -> CycleWindows:
-    """Integration windows from the recording's rising trigger edges.
-
-    With ``single`` the whole recording is one cycle starting at its first event (a
-    single ramp, as in temporal-mapping captures).
-
-    Otherwise as :func:`plan_windows`, the cycles coming, when there are neither
-    triggers nor a simulated rig, from the event rate
-    (:func:`asynhdr.segment.cycles_from_events`).
-    """
-    if single:
-        if rec.events.size == 0:
-            raise ValueError("recording has no events: nothing to reconstruct")
-        t = rec.events["t"]
-        t0 = int(t.min())
-        span = float(int(t.max()) - t0 + 1)
-        return CycleWindows(np.array([t0]), float(window_us or span))
-
-    def from_rate(period: float | None) -> Cycles:
-        from asynhdr.segment import cycles_from_events
-
-        return cycles_from_events(_sorted_events(rec), period_us=period)
-
-    meta = rec.metadata if rig is None else dict(rec.metadata, rig=rig.to_metadata())
-    return plan_windows(rec.triggers, meta, from_rate, window_us=window_us,
-                        period_us=period_us)
-
-
-def plan_windows(
-    triggers: np.ndarray,
-    metadata: dict[str, Any],
-    from_rate: Callable[[float | None], Cycles],
-    *,
-    window_us: float | None = None,
-    period_us: float | None = None,
-) -> CycleWindows:
-    """Integration windows of a recording from what it holds besides its events.
-
-    Cycle starts: the rising trigger edges when there are any
-    (:func:`asynhdr.segment.cycles_from_triggers`), else, for a simulated recording,
-    its rig's cycles (``metadata``), else ``from_rate(period_us)``, the cycles of the
-    event-rate envelope (logged with the confidence). The window defaults to the rig's
-    ramp (simulated recordings) or the period (at most the shortest cycle).
-    """
-    rig = _rig_from(metadata)
-    rising = triggers["t"][triggers["rising"]] if triggers.size else np.zeros(0, np.int64)
-    if rising.size:
-        from asynhdr.segment import cycles_from_triggers
-
-        cyc = cycles_from_triggers(triggers,
-                                   period_us=period_us or (rig.period_us if rig else None))
-        starts = np.asarray(cyc.start_us, dtype=np.int64)
-        period = float(cyc.period_us)
-    elif rig is not None:
-        n = int(metadata.get("n_cycles", 1))
-        starts = rig.cycle_starts_us(n, t0_us=int(metadata.get("t0_us", 0)))
-        period = float(rig.period_us)
-    else:
-        from asynhdr.segment import MIN_RATE_CONFIDENCE
-
-        cyc = from_rate(period_us)
-        if cyc.confidence < MIN_RATE_CONFIDENCE:
-            hint = ("treat it as one ramp (--single)" if period_us is not None else
-                    "give the period (period_us, --period-us) or treat it as one ramp "
-                    "(--single)")
-            raise ValueError(
-                f"no trigger edges, and no periodic bursts in the event rate (best guess: "
-                f"period {cyc.period_us:.1f} µs, confidence {cyc.confidence:.2f} < "
-                f"{MIN_RATE_CONFIDENCE}): the recording may not be modulated; {hint}")
-        logger.warning("no triggers: cycles from the event rate (period %.1f µs, "
-                       "confidence %.2f)", cyc.period_us, cyc.confidence)
-        starts = np.asarray(cyc.start_us, dtype=np.int64)
-        period = float(cyc.period_us)
-    if window_us is None:
-        window_us = rig.ramp_us if rig is not None else period
-        if starts.size > 1:  # a fitted period can exceed a cycle by a fraction of a µs
-            window_us = min(float(window_us), float(np.min(np.diff(starts))))
-    return CycleWindows(starts, float(window_us))
-
-
-def _paper(method: str) -> Callable[..., np.ndarray]:
-    def run(rec: Recording, windows: CycleWindows, *, k: float, threshold: float,
-            l_const: float, cmap: np.ndarray | None, rig: Rig | None) -> np.ndarray:
-        s = weighted_sums(rec, windows, method=method, k=k)
-        scale = threshold if cmap is None else threshold * cmap
-        return (l_const * np.exp(scale * s)).astype(np.float32)
-    return run
-
-
-def _count(rec: Recording, windows: CycleWindows, *, k: float, threshold: float,
-           l_const: float, cmap: np.ndarray | None, rig: Rig | None) -> np.ndarray:
-    s = weighted_sums(rec, windows, method="count")
-    scale = threshold if cmap is None else threshold * cmap
-    return (l_const * np.exp(scale * s)).astype(np.float32)
-
-
-def _ttfe(rec: Recording, windows: CycleWindows, *, k: float, threshold: float,
-          l_const: float, cmap: np.ndarray | None, rig: Rig | None) -> np.ndarray:
-    u = first_on_phase(rec, windows)
-    if rig is None:
-        logger.warning("ttfe: no rig in the recording's metadata; assuming a linear ramp "
-                       "(radiance proportional to 1/t)")
-        with np.errstate(divide="ignore"):
-            img = np.where(np.isnan(u), 0.0, 1.0 / np.maximum(u, 1e-9))
-        return img.astype(np.float32)
-    w1, w2 = rig.waveforms()
-    c = threshold if cmap is None else threshold * cmap
-    ec = np.exp(c)
-    # u is in the window's units; the waveforms are in cycle phase. Timestamps are
-    # floored to whole µs: the crossing lies on average half a µs after its stamp.
-    ph = (u * windows.window_us + 0.5) / rig.period_us
-    valid = ~np.isnan(ph)
-    phv = np.where(valid, ph, 0.0)
-    t1u, t2u = w1(phv), w2(phv)
-    t10, t20 = float(w1.values[0]), float(w2.values[0])
-    den = t1u - ec * t10
-    num = ec * t20 - t2u
-    with np.errstate(divide="ignore", invalid="ignore"):
-        rho = np.where(valid & (den > 0), num / den, 0.0)
-    return (l_const * np.maximum(rho, 0.0)).astype(np.float32)
 
 
 @nb.njit(cache=True, inline="always")
@@ -484,6 +350,8 @@ def _invert_kernel(x, y, p, t, starts, window_us, period_us, width, c_on, c_off,
         else:
             n_off[j] += 1
         level = c_on[j] * n_on[j] - c_off[j] * n_off[j]
+        if level > 700.0:  # exp would overflow: no finite estimate from this event
+            continue
         u = (dt + 0.5) / period_us
         e = np.exp(level)
         den = _interp(knots, t1, u) - e * t10
@@ -493,146 +361,363 @@ def _invert_kernel(x, y, p, t, starts, window_us, period_us, width, c_on, c_off,
             cnt[c, j] += 1.0
 
 
-def _invert(rec: Recording, windows: CycleWindows, *, k: float, threshold: float,
-            l_const: float, cmap: np.ndarray | None, rig: Rig | None) -> np.ndarray:
+# --------------------------------------------------------------------------- methods
+
+
+@dataclass(frozen=True)
+class _Params:
+    """What every method gets besides the events: the nominal ON and OFF thresholds, the
+    c-map's per-pixel ``gain`` on both (None without a c-map), ``L_const``, the rig (or
+    None), ``k``."""
+
+    k: float
+    c_on: float
+    c_off: float
+    gain: np.ndarray | None
+    l_const: float
+    rig: Rig | None
+    ml: dict[str, Any] | None = None
+
+    def with_gain(self, a: np.ndarray) -> np.ndarray:
+        """``a`` (``(..., height, width)``) times the c-map, in place."""
+        if self.gain is not None:
+            a *= self.gain.reshape(a.shape[-2:])
+        return a
+
+    def per_pixel(self, c: float, npx: int) -> np.ndarray:
+        """A nominal threshold as ``(npx,)`` per-pixel thresholds (the c-map applied)."""
+        return c * self.gain if self.gain is not None else np.full(npx, c)
+
+
+def _from_level(level: np.ndarray, l_const: float) -> np.ndarray:
+    """``L_const exp(level)`` as float32; a level beyond what float32 holds is saturated
+    at its largest value (and counted in a warning)."""
+    log_img = np.add(level, math.log(l_const), out=level)  # level is the caller's own
+    top = float(log_img.max()) if log_img.size else 0.0
+    if top > LOG_FLOAT32_MAX:
+        logger.warning(
+            "%d pixel-cycles have a level beyond what a float32 image holds (log radiance "
+            "up to %.0f > %.2f: hundreds more ON than OFF events, a hot pixel or a window "
+            "longer than a ramp); set to the largest float32 (3.4e38)",
+            int(np.count_nonzero(log_img > LOG_FLOAT32_MAX)), top, LOG_FLOAT32_MAX)
+        np.minimum(log_img, 89.0, out=log_img)  # exp(89) > FLT_MAX: saturated below
+    img = np.exp(log_img, out=log_img)
+    if top > LOG_FLOAT32_MAX:
+        np.minimum(img, FLOAT32_MAX, out=img)
+    return img.astype(np.float32)
+
+
+def _paper(method: str) -> Callable[[Recording, CycleWindows, _Params], np.ndarray]:
+    def run(rec: Recording, windows: CycleWindows, p: _Params) -> np.ndarray:
+        s = weighted_sums(rec, windows, method=method, k=p.k, c_on=p.c_on, c_off=p.c_off)
+        return _from_level(p.with_gain(s), p.l_const)
+    return run
+
+
+def _count(rec: Recording, windows: CycleWindows, p: _Params) -> np.ndarray:
+    s = weighted_sums(rec, windows, method="count", c_on=p.c_on)
+    return _from_level(p.with_gain(s), p.l_const)
+
+
+def _ttfe(rec: Recording, windows: CycleWindows, p: _Params) -> np.ndarray:
+    u = first_on_phase(rec, windows)
+    rig = p.rig
+    if rig is None:
+        logger.warning("ttfe: no rig in the recording's metadata; assuming a linear ramp "
+                       "(radiance proportional to 1/t)")
+        with np.errstate(divide="ignore"):
+            img = np.where(np.isnan(u), 0.0, 1.0 / np.maximum(u, 1e-9))
+        return img.astype(np.float32)
+    w1, w2 = rig.waveforms()
+    ec = np.exp(p.per_pixel(p.c_on, rec.height * rec.width).reshape(rec.height, rec.width))
+    # u is in the window's units; the waveforms are in cycle phase. Timestamps are
+    # floored to whole µs: the crossing lies on average half a µs after its stamp.
+    ph = (u * windows.window_us + 0.5) / rig.period_us
+    valid = ~np.isnan(ph)
+    phv = np.where(valid, ph, 0.0)
+    t1u, t2u = w1(phv), w2(phv)
+    t10, t20 = float(w1.values[0]), float(w2.values[0])
+    den = t1u - ec * t10
+    num = ec * t20 - t2u
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rho = np.where(valid & (den > 0), num / den, 0.0)
+    return (p.l_const * np.maximum(rho, 0.0)).astype(np.float32)
+
+
+def _invert(rec: Recording, windows: CycleWindows, p: _Params) -> np.ndarray:
+    rig = p.rig
     if rig is None:
         raise ValueError("method 'invert' needs the rig's waveforms (a simulated recording, "
                          "or a rig given in the recording's metadata)")
     w1, w2 = rig.waveforms()
     knots = np.union1d(w1.phase, w2.phase)
-    c = np.full(rec.height * rec.width, threshold) if cmap is None else \
-        (threshold * np.asarray(cmap, dtype=np.float64)).ravel()
     npx = rec.height * rec.width
     acc = np.zeros((windows.n_cycles, npx))
     cnt = np.zeros((windows.n_cycles, npx))
     ev = _sorted_events(rec)
     _invert_kernel(ev["x"], ev["y"], ev["p"], ev["t"], windows.start_us,
-                   float(windows.window_us), float(rig.period_us), rec.width, c, c, knots,
-                   w1(knots), w2(knots), np.zeros(npx, np.int64), np.zeros(npx, np.int64),
+                   float(windows.window_us), float(rig.period_us), rec.width,
+                   p.per_pixel(p.c_on, npx), p.per_pixel(p.c_off, npx), knots, w1(knots),
+                   w2(knots), np.zeros(npx, np.int64), np.zeros(npx, np.int64),
                    np.full(npx, -1, np.int64), acc, cnt)
     with np.errstate(invalid="ignore", divide="ignore"):
         rho = np.where(cnt > 0, np.exp(acc / np.maximum(cnt, 1.0)), 0.0)
-    return (l_const * rho).reshape(windows.n_cycles, rec.height, rec.width).astype(np.float32)
+    return (p.l_const * rho).reshape(windows.n_cycles, rec.height, rec.width).astype(np.float32)
 
 
-def _ml(rec: Recording, windows: CycleWindows, *, k: float, threshold: float,
-        l_const: float, cmap: np.ndarray | None, rig: Rig | None,
-        extra: dict[str, Any] | None = None) -> np.ndarray:
+def _ml(rec: Recording, windows: CycleWindows, p: _Params) -> np.ndarray:
     from asynhdr.ml import reconstruct_ml
 
-    if rig is None:
-        raise ValueError("method 'ml' needs the rig (a simulated recording, or --rig with a "
-                         "rig file)")
-    return reconstruct_ml(rec, windows, rig=rig, l_const=l_const, cmap=cmap,
-                          threshold=threshold, **(extra or {}))
+    if p.rig is None:
+        raise ValueError("method 'ml' needs the rig (a simulated recording, or a rig file: "
+                         "--rig)")
+    return reconstruct_ml(rec, windows, rig=p.rig, l_const=p.l_const, cmap=p.gain,
+                          threshold=p.c_on, **(p.ml or {}))
 
 
-_TABLE: dict[str, Callable[..., np.ndarray]] = {
-    **{m: _paper(m) for m in WEIGHTINGS},
-    "count": _count,
-    "ttfe": _ttfe,
-    "invert": _invert,
-    "ml": _ml,
+@dataclass(frozen=True)
+class Method:
+    """A reconstruction method.
+
+    Attributes
+    ----------
+    name : the name it is chosen by.
+    function : ``function(recording, windows, params) -> (n_cycles, height, width)``
+        float32 images.
+    radiometric : the image is linear in radiance (in the unit of ``L_const``).
+    needs_rig : it needs the rig's waveforms (``ttfe`` falls back to ``1/u`` without).
+    cmap : which c-map it takes: ``"weighting"`` (the map calibrated with its own
+        weighting), ``"threshold"`` (the per-pixel threshold ratio, the raw map) or None.
+    description : one line for listings.
+    """
+
+    name: str
+    function: Callable[[Recording, CycleWindows, _Params], np.ndarray]
+    radiometric: bool
+    needs_rig: bool
+    cmap: str | None
+    description: str
+
+
+METHODS: dict[str, Method] = {
+    m.name: m for m in (
+        Method("raw", _paper("raw"), False, False, "weighting", "f = 1, the raw integral"),
+        Method("linear", _paper("linear"), False, False, "weighting", "f = 1 - t"),
+        Method("quadratic", _paper("quadratic"), False, False, "weighting", "f = (1 - t)^2"),
+        Method("poly5", _paper("poly5"), False, False, "weighting", "f = (1 - t)^5"),
+        Method("exp", _paper("exp"), False, False, "weighting",
+               "f = 2^(-k t), the paper's best"),
+        Method("ttfe", _ttfe, True, False, "threshold",
+               "time to the first ON event (EvTemMap)"),
+        Method("count", _count, False, False, "threshold", "L_const exp(c_on n_on)"),
+        Method("invert", _invert, True, True, "threshold",
+               "every event inverted through the rig's waveforms"),
+        Method("ml", _ml, True, True, "threshold",
+               "maximum likelihood under the simulator's pixel model, with an uncertainty"),
+    )
 }
+"""Every reconstruction method by name (the paper's weightings first)."""
+
+
+class CMapLike(Protocol):
+    """What :func:`reconstruct` needs of a c-map (:class:`asynhdr.calibrate.CMap`)."""
+
+    def for_method(self, method: str, *, k: float = ...) -> np.ndarray | None: ...
+
+
+# --------------------------------------------------------------------------- context
+
+
+def rig_of(source: Source | Recording) -> Rig | None:
+    """The rig a recording was made with, from its metadata (simulated recordings, and
+    files written by asynhdr, which keep it)."""
+    d = as_source(source).metadata.get("rig")
+    return Rig.from_metadata(d) if isinstance(d, dict) else None
+
+
+def thresholds_of(source: Source | Recording) -> tuple[float, float, str]:
+    """The nominal ``(c_on, c_off)`` of the recording's sensor and where they come from:
+    the sensor in its metadata (simulated recordings), else the sensor preset the file's
+    camera is (a DAVIS346 or an IMX636 named in the header), else
+    :class:`~asynhdr.sensor.params.SensorParams`' defaults."""
+    meta = as_source(source).metadata
+    s = meta.get("sensor")
+    if isinstance(s, dict) and "threshold_on" in s:
+        c_on = float(s["threshold_on"])
+        return c_on, float(s.get("threshold_off", c_on)), "the recording's sensor"
+    names = " ".join(str(v) for v in (meta.get("camera"), meta.get("header")) if v).lower()
+    for name, preset in PRESETS.items():
+        if name not in ("ideal", "v2e") and name in names:
+            return preset.threshold_on, preset.threshold_off, f"the {name} preset"
+    return SensorParams.threshold_on, SensorParams.threshold_off, "the default"
+
+
+def windows_for(
+    source: Source | Recording,
+    *,
+    window_us: float | None = None,
+    period_us: float | None = None,
+    single: bool = False,
+    cycles: Cycles | None = None,
+    rig: Rig | None = None,
+) -> CycleWindows:
+    """Integration windows of a recording.
+
+    With ``single`` the whole recording is one cycle starting at its first event (a
+    single ramp, as in temporal-mapping captures). Otherwise the cycles of
+    :func:`asynhdr.segment.find_cycles` (or ``cycles``), each integrated over
+    ``window_us``: by default the rig's ramp (simulated recordings, or ``rig``: a rig
+    file's, whose period also guides the cycle search) or the period, at most the
+    shortest cycle.
+    """
+    src = as_source(source)
+    if rig is not None and period_us is None and not single:
+        period_us = float(rig.period_us)
+    if single:
+        sc = src.scan()
+        if sc.events == 0:
+            raise ValueError(f"{src.name}: no events: nothing to reconstruct")
+        t0 = int(sc.min_t_us)  # type: ignore[arg-type]
+        span = float(int(sc.max_t_us) - t0 + 1)  # type: ignore[arg-type]
+        return CycleWindows(np.array([t0]), float(window_us or span))
+    cyc = cycles if cycles is not None else find_cycles(src, period_us=period_us)
+    starts = np.asarray(cyc.start_us, dtype=np.int64)
+    if starts.size == 0:
+        raise ValueError(f"{src.name}: no cycles to reconstruct")
+    if window_us is None:
+        rig = rig if rig is not None else rig_of(src)
+        window_us = rig.ramp_us if rig is not None else float(cyc.period_us)
+        if starts.size > 1:  # a fitted period can exceed a cycle by a fraction of a µs
+            window_us = min(float(window_us), float(np.min(np.diff(starts))))
+    return CycleWindows(starts, float(window_us), warmup=int(cyc.warmup))
+
+
+def _params(
+    src: Source,
+    method: str,
+    k: float,
+    cmap: CMapLike | np.ndarray | None,
+    threshold_on: float | None,
+    threshold_off: float | None,
+    l_const: float | None,
+    rig: Rig | None = None,
+    ml_options: dict[str, Any] | None = None,
+) -> _Params:
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r}; expected one of {list(METHODS)}")
+    if not (k > 0 and math.isfinite(k)):
+        raise ValueError(f"k must be positive, got {k}")
+    rig = rig if rig is not None else rig_of(src)
+    c_on0, c_off0, _ = thresholds_of(src)
+    c_on = c_on0 if threshold_on is None else float(threshold_on)
+    c_off = c_off0 if threshold_off is None else float(threshold_off)
+    for nm, v in (("threshold_on", c_on), ("threshold_off", c_off)):
+        if not (v > 0 and math.isfinite(v)):
+            raise ValueError(f"{nm} must be positive, got {v}")
+    lc = (rig.l_const if rig is not None else RELATIVE_L_CONST) if l_const is None \
+        else float(l_const)
+    if not (lc > 0 and math.isfinite(lc)):
+        raise ValueError(f"l_const must be positive, got {lc}")
+    cm: np.ndarray | None
+    if cmap is None or isinstance(cmap, np.ndarray):
+        cm = cmap
+    else:
+        cm = cmap.for_method(method, k=k)
+    gain = None
+    if cm is not None:
+        if cm.shape != (src.height, src.width):
+            raise ValueError(f"c-map shape {cm.shape} does not match the sensor "
+                             f"({src.height}, {src.width})")
+        gain = np.asarray(cm, dtype=np.float64).ravel()
+    return _Params(k=float(k), c_on=c_on, c_off=c_off, gain=gain, l_const=lc, rig=rig,
+                   ml=ml_options)
 
 
 def reconstruct(
-    rec: Recording,
+    source: Source | Recording,
     *,
-    method: str = "exp",
+    method: str = DEFAULT_METHOD,
     k: float = DEFAULT_K,
-    cmap: CMap | np.ndarray | None = None,
+    cmap: CMapLike | np.ndarray | None = None,
     windows: CycleWindows | None = None,
-    threshold: float | None = None,
+    threshold_on: float | None = None,
+    threshold_off: float | None = None,
     l_const: float | None = None,
     rig: Rig | None = None,
     ml_options: dict[str, Any] | None = None,
 ) -> np.ndarray:
-    """One image per cycle, float32 ``(n_cycles, height, width)``.
+    """One image per cycle of a whole recording, float32 ``(n_cycles, height, width)``.
 
     Parameters
     ----------
-    rec : the recording (events are sorted stably by time first if they are not).
-    method : one of ``METHODS``.
+    source : a :class:`~asynhdr.source.Source` or a Recording (read whole; events are
+        sorted stably by time first if they are not).
+    method : one of :data:`METHODS`.
     k : the exponential weighting's ``k``.
-    cmap : a ``CMap`` (its map for this method is used) or a ``(height, width)`` array
-        multiplying the threshold per pixel; ``None`` for no correction.
-    windows : integration windows (default: from the triggers, see ``windows_for``).
-    threshold : the nominal contrast threshold ``c`` (default: the recording's sensor).
-    l_const : the reference radiance (default: the rig's, else 1).
-    rig : the rig (default: the recording's metadata), e.g. from a rig file.
+    cmap : a c-map (its map for this method is used) or a ``(height, width)`` array
+        multiplying both thresholds per pixel; ``None`` for no correction.
+    windows : integration windows (default: :func:`windows_for`).
+    threshold_on, threshold_off : the nominal contrast thresholds (default: the
+        recording's sensor, see :func:`thresholds_of`).
+    l_const : the reference radiance (default: the rig's, else :data:`RELATIVE_L_CONST`).
+    rig : the rig (default: the recording's metadata), e.g. from a rig file
+        (:mod:`asynhdr.io.rigfile`).
     ml_options : for ``ml``: keyword options of :func:`asynhdr.ml.reconstruct_ml`
-        (``sensor``, ``thresholds``, ``out``: a dict that receives the uncertainty).
+        (``sensor``, ``thresholds``, ``settled_start``, ``out``: a dict that receives the
+        uncertainty and the flags).
 
     Returns
     -------
     Images in the unit of ``l_const`` (the scene's unit for simulated recordings).
     """
-    if method not in _TABLE:
-        raise ValueError(f"unknown method {method!r}; expected one of {list(METHODS)}")
-    if not (k > 0 and math.isfinite(k)):
-        raise ValueError(f"k must be positive, got {k}")
-    rig = rig if rig is not None else rig_of(rec)
-    windows = windows or windows_for(rec, rig=rig)
-    c = threshold_of(rec) if threshold is None else float(threshold)
-    if not (c > 0 and math.isfinite(c)):
-        raise ValueError(f"threshold must be positive, got {c}")
-    lc = (rig.l_const if rig is not None else 1.0) if l_const is None else float(l_const)
-    cm: np.ndarray | None
-    if cmap is None:
-        cm = None
-    elif isinstance(cmap, np.ndarray):
-        cm = cmap
-    else:
-        cm = cmap.for_method(method, k=k)
-    if cm is not None and cm.shape != (rec.height, rec.width):
-        raise ValueError(f"c-map shape {cm.shape} does not match the sensor "
-                         f"({rec.height}, {rec.width})")
-    kwargs: dict[str, Any] = dict(k=float(k), threshold=c, l_const=lc, cmap=cm, rig=rig)
-    if method == "ml":
-        kwargs["extra"] = ml_options
-    return _TABLE[method](rec, windows, **kwargs)
+    src = as_source(source)
+    p = _params(src, method, k, cmap, threshold_on, threshold_off, l_const, rig, ml_options)
+    windows = windows or windows_for(src, rig=p.rig)
+    return METHODS[method].function(src.read(), windows, p)
 
 
-class FileReconstruction:
-    """Reconstruct a recording file cycle by cycle, holding one cycle's events at a time.
+class CycleImages:
+    """A recording reconstructed cycle by cycle, holding one cycle's events at a time.
 
-    Made by :func:`reconstruct_file`. ``windows`` and ``metadata`` are known before the
-    first image; iterating yields ``(cycle, start_us, image)`` with the image exactly as
-    :func:`reconstruct` gives it for that cycle from the whole recording.
+    Made by :func:`reconstruct_cycles`. ``windows``, ``metadata`` and the geometry are
+    known before the first image; iterating yields ``(cycle, start_us, image)`` with the
+    image exactly as :func:`reconstruct` gives it for that cycle from the whole
+    recording, and calls ``progress("reconstruct", cycles_done, n_cycles)``.
     """
 
-    def __init__(self, path: str | os.PathLike[str], windows: CycleWindows,
-                 metadata: dict[str, Any], width: int, height: int, n_events: int,
-                 options: dict[str, Any], read: dict[str, Any]) -> None:
-        self.path = path
+    def __init__(self, source: Source, windows: CycleWindows, method: str, params: _Params,
+                 progress: Progress | None) -> None:
+        self.source = source
         self.windows = windows
-        self.metadata = metadata
-        self.width = width
-        self.height = height
-        self.n_events = n_events
-        """Events in the file (all of them, inside the windows or not)."""
-        self._options = options
-        self._read = read
+        self.method = METHODS[method]
+        self.metadata = source.metadata
+        self.width = source.width
+        self.height = source.height
+        self._params = params
+        self._progress = progress
 
     def __len__(self) -> int:
         return self.windows.n_cycles
 
-    def __iter__(self) -> Iterator[tuple[int, int, np.ndarray]]:
-        from asynhdr.io.windows import iter_windows
+    @property
+    def n_events(self) -> int:
+        """Events in the recording (all of them, inside the windows or not)."""
+        return self.source.scan().events
 
+    def __iter__(self) -> Iterator[tuple[int, int, np.ndarray]]:
         w = self.windows
-        starts = w.start_us
-        stops = np.ceil(starts + w.window_us).astype(np.int64)  # t < start + window
+        stops = np.ceil(w.start_us + w.window_us).astype(np.int64)  # t < start + window
         once = _OncePerMessage()  # what holds for every cycle is logged once
         logger.addFilter(once)
         try:
-            for win in iter_windows(self.path, starts, stops, **self._read):
+            for win in self.source.windows(w.start_us, stops):
                 ev, _ = sort_events(win.events)
                 rec = Recording(events=ev, width=self.width, height=self.height,
                                 triggers=win.triggers, metadata=self.metadata)
                 one = CycleWindows(np.array([win.start_us]), w.window_us)
-                yield win.i, win.start_us, reconstruct(rec, windows=one, **self._options)[0]
+                yield win.i, win.start_us, self.method.function(rec, one, self._params)[0]
+                if self._progress is not None:
+                    self._progress("reconstruct", win.i + 1, len(self))
         finally:
             logger.removeFilter(once)
 
@@ -652,53 +737,33 @@ class _OncePerMessage(logging.Filter):
         return True
 
 
-def reconstruct_file(
-    path: str | os.PathLike[str],
+def reconstruct_cycles(
+    source: Source | Recording,
     *,
-    method: str = "exp",
+    method: str = DEFAULT_METHOD,
     k: float = DEFAULT_K,
-    cmap: CMap | np.ndarray | None = None,
+    cmap: CMapLike | np.ndarray | None = None,
+    windows: CycleWindows | None = None,
     window_us: float | None = None,
     period_us: float | None = None,
-    threshold: float | None = None,
+    single: bool = False,
+    threshold_on: float | None = None,
+    threshold_off: float | None = None,
     l_const: float | None = None,
-    width: int | None = None,
-    height: int | None = None,
-    time_unit: str | None = None,
-    progress: Callable[[int], None] | None = None,
+    progress: Progress | None = None,
     rig: Rig | None = None,
     ml_options: dict[str, Any] | None = None,
-) -> FileReconstruction:
-    """Plan the reconstruction of a recording file, to run cycle by cycle.
+) -> CycleImages:
+    """Plan the reconstruction of a recording, to run cycle by cycle (memory flat in the
+    recording's size): the cycles come from :func:`windows_for` (one streaming pass over
+    the source, two more for the event rate without triggers); iterating the result
+    reads the source once more, one cycle at a time. Arguments as in
+    :func:`reconstruct` and :func:`windows_for`."""
+    src = as_source(source)
+    p = _params(src, method, k, cmap, threshold_on, threshold_off, l_const, rig, ml_options)
+    if windows is None:
+        src.scan(progress=progress)
+        windows = windows_for(src, window_us=window_us, period_us=period_us, single=single,
+                              rig=p.rig)
+    return CycleImages(src, windows, method, p, progress)
 
-    One streaming pass over the file finds its geometry, triggers and metadata; the
-    cycles come as in :func:`windows_for` (the event-rate case takes two more
-    streaming passes, :func:`asynhdr.segment.cycles_from_file`). Iterating the result
-    reads the file once more, one cycle at a time (memory flat in file size). Arguments
-    as in :func:`reconstruct` and :func:`asynhdr.io.open_recording`; ``progress(n)``
-    is called with the events scanned so far during the first pass.
-    """
-    from asynhdr.io import scan_recording
-    from asynhdr.segment import cycles_from_file
-
-    if method not in _TABLE:
-        raise ValueError(f"unknown method {method!r}; expected one of {list(METHODS)}")
-    read: dict[str, Any] = dict(width=width, height=height, time_unit=time_unit)
-    scan = scan_recording(path, progress=progress, **read)
-    info = scan.info
-    if info["width"] is None or info["height"] is None:
-        raise ValueError(f"{path}: no sensor geometry; give width and height")
-    head_meta = info["header"].get("metadata")
-    metadata = dict(head_meta) if isinstance(head_meta, dict) else {}
-    if rig is not None:  # a rig file: its cycles, its ramp, its waveforms
-        metadata["rig"] = rig.to_metadata()
-
-    def from_rate(period: float | None) -> Cycles:
-        return cycles_from_file(path, period_us=period, scan=scan, **read)
-
-    windows = plan_windows(scan.triggers, metadata, from_rate, window_us=window_us,
-                           period_us=period_us)
-    options: dict[str, Any] = dict(method=method, k=k, cmap=cmap, threshold=threshold,
-                                   l_const=l_const, rig=rig, ml_options=ml_options)
-    return FileReconstruction(path, windows, metadata, int(info["width"]),
-                              int(info["height"]), int(info["events"]), options, read)

@@ -31,6 +31,7 @@ __all__ = [
     "PAPER_DENSITIES",
     "PAPER_ILLUMINANCE_LUX",
     "REC709_LUMA",
+    "MovingScene",
     "Roi",
     "Scene",
     "exposure_scale",
@@ -38,6 +39,7 @@ __all__ = [
     "from_radiance_map",
     "log_average",
     "luminance",
+    "moving_scene",
     "step_chart",
 ]
 
@@ -477,3 +479,93 @@ def luminance(rgb: npt.ArrayLike) -> np.ndarray:
     r, g, b = REC709_LUMA
     y = r * a[..., 0] + g * a[..., 1] + b * a[..., 2]
     return y.astype(np.float32)
+
+
+@dataclass(frozen=True, eq=False)
+class MovingScene:
+    """A scene that moves: radiance frames and their times.
+
+    Attributes
+    ----------
+    frames : float32 ``(n_frames, height, width)`` radiance; the simulator interpolates
+        linearly in time between frames (``simulate(..., frame_times_us=times_us,
+        engine="stepped")``).
+    times_us : float64 ``(n_frames,)``, increasing.
+    velocity_px_per_s : ``(vx, vy)``: how fast the content moves across the sensor.
+    unit, name : as :class:`Scene`.
+    """
+
+    frames: np.ndarray
+    times_us: np.ndarray
+    velocity_px_per_s: tuple[float, float]
+    unit: str = "relative"
+    name: str = ""
+
+    @property
+    def radiance(self) -> np.ndarray:
+        """The frames (what ``simulate`` takes as a moving scene)."""
+        return self.frames
+
+    @property
+    def metadata(self) -> dict[str, object]:
+        """What a recording of this scene should carry."""
+        return {"motion": {"velocity_px_per_s": list(self.velocity_px_per_s),
+                           "frame_step_us": float(np.median(np.diff(self.times_us)))
+                           if self.times_us.size > 1 else None,
+                           "n_frames": int(self.times_us.size)}}
+
+    def at(self, t_us: float) -> np.ndarray:
+        """The radiance at ``t_us`` (linear between frames, held outside them)."""
+        t = self.times_us
+        if t_us <= t[0]:
+            return self.frames[0].astype(np.float64)
+        if t_us >= t[-1]:
+            return self.frames[-1].astype(np.float64)
+        i = int(np.searchsorted(t, t_us, side="right")) - 1
+        w = (t_us - t[i]) / (t[i + 1] - t[i])
+        return (1.0 - w) * self.frames[i] + w * self.frames[i + 1].astype(np.float64)
+
+
+def moving_scene(
+    radiance: npt.ArrayLike,
+    *,
+    velocity_px_per_s: tuple[float, float],
+    duration_us: float,
+    frame_step_us: float = 1_000.0,
+    t0_us: float = 0.0,
+    unit: str = "relative",
+    name: str = "",
+) -> MovingScene:
+    """An image moved across the sensor at a constant velocity: a pan.
+
+    Frame ``n`` at ``t_n = t0 + n frame_step`` shows ``radiance`` shifted by
+    ``v (t_n - t0)`` pixels (``v = (vx, vy)`` in px/s; content moves towards +x for
+    ``vx > 0``), sampled by bilinear interpolation at sub-pixel offsets; what enters from
+    outside the image repeats its edge. Frames cover ``[t0, t0 + duration]``; between them
+    the simulator interpolates linearly, so a frame step well under the time an edge takes
+    to cross a pixel (``1e6 / |v|`` µs) keeps edges sharp.
+    """
+    from scipy.ndimage import map_coordinates
+
+    r = np.asarray(radiance, dtype=np.float64)
+    if r.ndim != 2:
+        raise ValueError(f"moving_scene: expected a 2-D (height, width) radiance, got shape "
+                         f"{r.shape}")
+    _check_finite_nonnegative(r, "moving_scene: radiance")
+    vx, vy = (float(v) for v in velocity_px_per_s)
+    if not (math.isfinite(vx) and math.isfinite(vy)):
+        raise ValueError(f"moving_scene: velocity_px_per_s must be finite, got "
+                         f"{velocity_px_per_s}")
+    if not (duration_us > 0 and frame_step_us > 0 and math.isfinite(duration_us)):
+        raise ValueError("moving_scene: duration_us and frame_step_us must be positive")
+    n = math.ceil(duration_us / frame_step_us - 1e-9) + 1
+    times = float(t0_us) + np.arange(n, dtype=np.float64) * frame_step_us
+    h, w = r.shape
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    frames = np.empty((n, h, w), dtype=np.float32)
+    for i, t in enumerate(times):
+        dt_s = (t - times[0]) * 1e-6
+        frames[i] = map_coordinates(r, [yy - vy * dt_s, xx - vx * dt_s], order=1,
+                                    mode="nearest")
+    return MovingScene(frames=frames, times_us=times, velocity_px_per_s=(vx, vy), unit=unit,
+                       name=name)

@@ -5,7 +5,8 @@ A rig marks it with a rising trigger edge; without triggers the start is found
 from the event rate, because the panels make every pixel fire in a burst each
 cycle (brightest pixels first).
 
-Everything here is pure: arrays in, arrays out. Times are integer microseconds.
+Everything here is pure: arrays or a :class:`~asynhdr.source.Source` in, arrays out; no
+file is opened here. Times are integer microseconds.
 
 Public API
 ----------
@@ -15,6 +16,9 @@ Public API
 - :func:`cycles_from_events`: period and phase from the event-rate envelope.
 - :func:`cycles_from_rate`: the same from an event-rate histogram (for callers that
   bin a large recording while streaming it).
+- :func:`find_cycles`: the one cycle policy (triggers, else a simulated recording's rig,
+  else the event-rate envelope with a confidence below which there are no cycles),
+  used by every command.
 - :func:`event_rate`: events per bin.
 - :func:`split_cycles`: ``(start, stop)`` event indices of each cycle.
 """
@@ -23,37 +27,41 @@ from __future__ import annotations
 
 import logging
 import math
-import os
-from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 
-from asynhdr.events import sort_events, validate_events, validate_triggers
-
-if TYPE_CHECKING:
-    from asynhdr.io import RecordingScan
+from asynhdr.events import Recording, sort_events, validate_events, validate_triggers
+from asynhdr.source import Progress, Source, as_source
 
 __all__ = [
+    "MIN_COVERAGE",
     "MIN_RATE_CONFIDENCE",
     "Cycles",
+    "NoCyclesError",
     "cycles_from_events",
-    "cycles_from_file",
     "cycles_from_rate",
     "cycles_from_triggers",
     "estimate_period_from_rate",
     "event_rate",
+    "find_cycles",
     "split_cycles",
 ]
 
 logger = logging.getLogger(__name__)
 
-SOURCES = ("triggers", "event_rate")
+SOURCES = ("triggers", "rig", "event_rate")
 """Where cycle starts can come from."""
 
 MIN_RATE_CONFIDENCE = 0.2
 """Cycles found from the event rate with a lower confidence are not used: the
 recording shows no periodic bursts (it may not be modulated)."""
+
+MIN_COVERAGE = 0.5
+"""Cycles found from the event rate are not used when, in a typical cycle, fewer than this
+fraction of the active pixels fire: the panels make every pixel fire each cycle, so
+bursts of part of the sensor (an APS frame readout, a flicker) are not modulation."""
 
 DEFAULT_PERIOD_RANGE_US = (1_000, 1_000_000)
 """Period search range (µs) of :func:`cycles_from_events` when none is given: 1 ms to 1 s."""
@@ -75,7 +83,7 @@ class Cycles:
     ----------
     start_us : int64 array, strictly increasing: the start time of each cycle (µs).
     period_us : float, the modulation period ``P`` (µs).
-    source : ``"triggers"`` or ``"event_rate"``.
+    source : ``"triggers"``, ``"rig"`` (a simulated recording's own) or ``"event_rate"``.
     confidence : float in [0, 1]. From triggers: the fraction of cycle starts that
         came from a trigger edge on the expected grid, ``n_ok / (n_ok + n_missing +
         n_extra)``. From the event rate: template contrast × fraction of cycles whose
@@ -85,6 +93,9 @@ class Cycles:
         none came. With ``fill_missing`` these times are also in ``start_us``.
     extra : int64 array, times (µs) of edges that are off the period grid and were
         not used as cycle starts.
+    warmup : the number of leading cycles (0 or 1) whose pixels start adapted to the
+        light before the modulation rather than to the end of a cycle (see
+        :func:`find_cycles`): a static scene's image differs in them.
 
     Cycle ``i`` spans ``[start_us[i], stop_us[i])``; see :attr:`stop_us`.
     """
@@ -95,6 +106,7 @@ class Cycles:
     confidence: float
     missing: np.ndarray = field(default_factory=_empty_i64)
     extra: np.ndarray = field(default_factory=_empty_i64)
+    warmup: int = 0
 
     def __post_init__(self) -> None:
         for name in ("start_us", "missing", "extra"):
@@ -165,14 +177,8 @@ class Cycles:
     def within(self, t_first_us: int, t_last_us: int) -> Cycles:
         """Only the cycles that lie wholly in ``[t_first_us, t_last_us]`` (complete cycles)."""
         keep = (self.start_us >= t_first_us) & (self.stop_us <= t_last_us + 1)
-        return Cycles(
-            start_us=self.start_us[keep],
-            period_us=self.period_us,
-            source=self.source,
-            confidence=self.confidence,
-            missing=self.missing,
-            extra=self.extra,
-        )
+        return replace(self, start_us=self.start_us[keep],
+                       warmup=int(bool(self.warmup and keep.size and keep[0])))
 
     def summary(self) -> dict[str, Any]:
         """A JSON-serialisable summary (counts, period, confidence)."""
@@ -185,6 +191,7 @@ class Cycles:
             "first_start_us": int(self.start_us[0]) if len(self) else None,
             "missing": int(self.missing.size),
             "extra": int(self.extra.size),
+            "warmup": int(self.warmup),
         }
 
 
@@ -687,51 +694,142 @@ def cycles_from_events(
                             refine_period=period_us is None)
 
 
-def cycles_from_file(
-    path: str | os.PathLike[str],
+# --------------------------------------------------------------------------- the policy
+
+
+class NoCyclesError(ValueError):
+    """No modulation cycles were found; ``reason`` says why (and :func:`find_cycles`'s
+    message what to give instead: the period, or the whole recording as one ramp)."""
+
+    def __init__(self, name: str, reason: str, *, period_given: bool) -> None:
+        self.reason = reason
+        hint = ("treat the recording as one ramp (single=True)" if period_given else
+                "give the modulation period (period_us) or treat the recording as one ramp "
+                "(single=True)")
+        super().__init__(f"{name}: no cycles found: {reason}; {hint}")
+
+
+def _coverage(source: Source, starts: np.ndarray, stops: np.ndarray) -> float:
+    """Median over (up to 16, evenly spread) cycles of the fraction of the pixels active
+    in any of them that fire in that cycle. The panels modulate every pixel each cycle,
+    so a modulated recording scores near 1; bursts of a few pixels (a frame readout, a
+    flicker on part of the scene) score low."""
+    n = starts.size
+    pick = np.unique(np.linspace(0, n - 1, min(n, 16)).round().astype(np.int64))
+    w = int(source.width)
+    seen: list[np.ndarray] = []
+    for win in source.windows(starts[pick], stops[pick]):
+        ev = win.events
+        seen.append(np.unique(ev["y"].astype(np.int64) * w + ev["x"]))
+    union = np.unique(np.concatenate(seen)) if seen else np.zeros(0, np.int64)
+    if union.size == 0:
+        return 0.0
+    return float(np.median([s.size / union.size for s in seen]))
+
+
+def _rig_cycles(metadata: dict[str, Any]) -> Cycles | None:
+    """The cycles a simulated recording was made with (its rig, cycle count, start)."""
+    rig = metadata.get("rig")
+    if not isinstance(rig, dict) or "period_us" not in rig or "n_cycles" not in metadata:
+        return None
+    period = float(rig["period_us"])
+    n = int(metadata["n_cycles"])
+    t0 = int(metadata.get("t0_us", 0))
+    return Cycles(start_us=t0 + np.arange(n, dtype=np.int64) * round(period),
+                  period_us=period, source="rig", confidence=1.0)
+
+
+def find_cycles(
+    source: Source | Recording,
     *,
     period_us: float | None = None,
+    channel: int | None = None,
     period_range_us: tuple[float, float] = DEFAULT_PERIOD_RANGE_US,
-    bin_us: float | None = None,
-    width: int | None = None,
-    height: int | None = None,
-    time_unit: str | None = None,
-    scan: RecordingScan | None = None,
+    min_confidence: float = MIN_RATE_CONFIDENCE,
+    progress: Progress | None = None,
 ) -> Cycles:
-    """Cycles of a recording file, without holding its events: from its rising trigger
-    edges (:func:`cycles_from_triggers`) when it has any, else from its event rate, the
-    same as :func:`cycles_from_events` on the whole recording (same bins, same result)
-    from histograms filled in streaming passes over the file.
+    """The modulation cycles of a recording: the one policy every command follows.
 
-    ``scan``: the file's :func:`asynhdr.io.scan_recording`, when already done (else one
-    more pass). ``width``, ``height``, ``time_unit`` as in
-    :func:`asynhdr.io.open_recording`.
+    1. Trigger edges, when the recording has rising ones (readers keep only the
+       external-input kind: an AEDAT file's frame markers are not edges): the channel
+       with most rising edges (or ``channel``), :func:`cycles_from_triggers`.
+    2. Else, for a simulated recording, the rig's own cycles (its metadata; its period
+       also serves the trigger edges when ``period_us`` is not given).
+    3. Else the event-rate envelope (:func:`cycles_from_rate` on the recording's rate,
+       binned first at ``period_range_us[0] / 20`` to find the period, then at
+       ``P / 200``), its confidence multiplied by the pixel coverage (the median
+       fraction of the active pixels that fire in a cycle: the panels make every pixel
+       fire each cycle). Below ``min_confidence``, or with a coverage below
+       :data:`MIN_COVERAGE`, there are no cycles.
+
+    ``warmup`` is 1 when the recording holds no event from before its first cycle (none
+    earlier than a tenth of a period before its start): the modulation starts with the
+    recording, its pixels start adapted to the light before it rather than to the end of
+    a cycle, and a static scene's first image differs from the others (in a simulation,
+    whose pixels start adapted to the cycle's first light, it is brighter).
+
+    Raises :class:`NoCyclesError` (a ``ValueError``) saying why when none are found.
     """
-    from asynhdr.io import scan_recording
-    from asynhdr.io.windows import rate_histogram
+    src = as_source(source)
+    name = src.name
+    tr = src.triggers
+    rising = tr[tr["rising"]] if tr.size else tr
+    notes: list[str] = [] if rising.size else ["no trigger edges"]
+    rig = _rig_cycles(src.metadata)
+    cyc: Cycles | None = None
+    if rising.size:
+        ids, counts = np.unique(rising["id"], return_counts=True)
+        ch = int(ids[int(np.argmax(counts))]) if channel is None else int(channel)
+        try:
+            cyc = cycles_from_triggers(tr, channel=ch, period_us=period_us or (
+                rig.period_us if rig is not None else None))
+        except ValueError as exc:
+            notes.append(f"trigger edges not usable ({exc})")
+    if cyc is None and rig is not None:
+        cyc, notes = rig, []
+    scan = src.scan(progress=progress)
+    if cyc is None:
+        if scan.events == 0:
+            raise NoCyclesError(name, "; ".join([*notes, "no events"]),
+                                period_given=period_us is not None)
+        t0 = int(scan.min_t_us)  # type: ignore[arg-type]
+        span = int(scan.max_t_us) - t0 + 1  # type: ignore[arg-type]
 
-    if scan is None:
-        scan = scan_recording(path, width=width, height=height, time_unit=time_unit)
-    tr = scan.triggers
-    if tr.size and tr["rising"].any():
-        return cycles_from_triggers(tr, period_us=period_us)
-    if not scan.info["events"]:
-        raise ValueError(f"{path}: no events and no triggers: no cycles to find")
-    t0 = int(scan.info["min_t_us"])
-    span = int(scan.info["max_t_us"]) - t0 + 1
+        def histogram(b: float) -> np.ndarray:
+            return src.event_rate(bin_us=b, t0_us=t0, n_bins=math.floor((span - 1) / b) + 1,
+                                  progress=progress)
 
-    def histogram(b: float) -> np.ndarray:
-        return rate_histogram(path, bin_us=b, t0_us=t0, n_bins=math.floor((span - 1) / b) + 1,
-                              width=width, height=height, time_unit=time_unit)
-
-    p0 = period_us
-    if p0 is None:
-        coarse = max(1.0, float(period_range_us[0]) / 20.0, span / float(1 << 23))
-        p0, _ = estimate_period_from_rate(histogram(coarse), bin_us=coarse,
-                                          period_range_us=period_range_us)
-    fine = float(bin_us) if bin_us is not None else max(1.0, p0 / 200.5)
-    return cycles_from_rate(histogram(fine), bin_us=fine, t0_us=t0, period_us=p0,
-                            refine_period=period_us is None)
+        try:
+            p0 = period_us
+            if p0 is None:
+                coarse = max(1.0, float(period_range_us[0]) / 20.0, span / float(1 << 23))
+                p0, _ = estimate_period_from_rate(histogram(coarse), bin_us=coarse,
+                                                  period_range_us=period_range_us)
+            fine = max(1.0, p0 / 200.5)
+            cyc = cycles_from_rate(histogram(fine), bin_us=fine, t0_us=t0, period_us=p0,
+                                   refine_period=period_us is None)
+        except ValueError as exc:
+            raise NoCyclesError(name, "; ".join([*notes, f"none from the event rate ({exc})"]),
+                                period_given=period_us is not None) from None
+        cover = _coverage(src, cyc.start_us, cyc.stop_us)
+        conf = cyc.confidence * cover
+        logger.info("%s: cycles from the event rate: period %.1f µs, burst confidence %.2f, "
+                    "pixel coverage %.2f", name, cyc.period_us, cyc.confidence, cover)
+        if conf < min_confidence or cover < MIN_COVERAGE:
+            raise NoCyclesError(
+                name, "; ".join([*notes, (
+                    f"no modulation in the event rate (best guess: period "
+                    f"{cyc.period_us:.1f} µs, confidence {conf:.2f}: burst regularity "
+                    f"{cyc.confidence:.2f} x pixel coverage {cover:.2f}; needed: confidence "
+                    f">= {min_confidence:g} and coverage >= {MIN_COVERAGE:g})")]),
+                period_given=period_us is not None)
+        cyc = replace(cyc, confidence=conf)
+        if rising.size:
+            logger.warning("%s: %s; cycles from the event rate instead", name, "; ".join(notes))
+    if scan.events and len(cyc) and (int(scan.min_t_us)  # type: ignore[arg-type]
+                                     >= int(cyc.start_us[0]) - 0.1 * cyc.period_us):
+        cyc = replace(cyc, warmup=1)
+    return cyc
 
 
 # --------------------------------------------------------------------------- splitting

@@ -52,10 +52,12 @@ __all__ = ["ENGINES", "draw_thresholds", "simulate"]
 
 logger = logging.getLogger(__name__)
 
-Progress = Callable[[int, int], None]
-"""``progress(done, total)``, called after each cycle."""
 
 ENGINES = ("exact", "stepped")
+
+Progress = Callable[[str, int, int], None]
+"""``progress(stage, done, total)``, the project's progress protocol
+(:data:`asynhdr.source.Progress`) with the total always known."""
 
 _JITTER_SPAN = 8.6
 """Largest |z| of a hash-normal draw (Box-Muller from 53-bit uniforms): bounds the
@@ -336,7 +338,7 @@ def simulate(
     t0_us: int = 0,
     thresholds: tuple[np.ndarray, np.ndarray] | None = None,
     sensor_seed: int | None = None,
-    engine: str = "exact",
+    engine: str = "auto",
     dt_us: float = DEFAULT_DT_US,
     dlog_radiance: float = DEFAULT_DLOG_RADIANCE,
     frame_times_us: np.ndarray | None = None,
@@ -359,7 +361,8 @@ def simulate(
     sensor_seed : when given, the sensor's frozen maps (threshold mismatch, hot and
         dead pixels) are drawn from this seed rather than from ``rng``: the same seed
         is the same physical sensor across captures.
-    engine : ``"exact"`` (static scenes: crossings solved on the exact irradiance, or on
+    engine : ``"auto"`` (``"exact"`` for a static scene, ``"stepped"`` for a moving one),
+        ``"exact"`` (static scenes: crossings solved on the exact irradiance, or on
         the photoreceptor output tabulated over radiance) or ``"stepped"`` (each pixel's
         signal integrated on the time grid; needed for a moving scene).
     dt_us : largest step of the time grid where a signal is integrated (the
@@ -367,8 +370,9 @@ def simulate(
     dlog_radiance : step of the log-radiance grid of the exact engine's low-pass table.
     frame_times_us : for a moving scene, ``scene`` is ``(n_frames, height, width)`` and
         these are the frames' times (µs, same clock as ``t0_us``; radiance is linear in
-        time between frames and held outside them). Needs ``engine="stepped"``.
-    progress : called as ``progress(done_cycles, n_cycles)``.
+        time between frames and held outside them); a scene with ``times_us`` (a
+        :class:`asynhdr.scene.MovingScene`) gives its own. Needs the stepped engine.
+    progress : called as ``progress("simulate", done_cycles, n_cycles)`` after each cycle.
 
     Returns
     -------
@@ -383,8 +387,12 @@ def simulate(
         raise ValueError(f"n_cycles must be a whole number >= 1, got {n_cycles}")
     if int(t0_us) != t0_us:
         raise ValueError(f"t0_us must be a whole number of µs, got {t0_us}")
+    if frame_times_us is None and getattr(scene, "times_us", None) is not None:
+        frame_times_us = scene.times_us  # type: ignore[union-attr]
+    if engine == "auto":
+        engine = "stepped" if frame_times_us is not None else "exact"
     if engine not in ENGINES:
-        raise ValueError(f"unknown engine {engine!r}; expected one of {ENGINES}")
+        raise ValueError(f"unknown engine {engine!r}; expected 'auto' or one of {ENGINES}")
     dead_us = sensor.refractory_us + sensor.latency_us
     if dead_us >= rig.period_us:
         raise ValueError(f"refractory_us + latency_us ({dead_us:g}) must be shorter than the "
@@ -452,7 +460,7 @@ def simulate(
         n_lost += lost
         chunks.append(ev)
         if progress is not None:
-            progress(k + 1, n_cycles)
+            progress("simulate", k + 1, n_cycles)
     events = _concat_sorted(chunks)
     step = sensor.timestamp_resolution_us
     if step > 1:
@@ -485,5 +493,7 @@ def simulate(
         metadata.setdefault(key, value)
     logger.info("simulated %d events over %d cycles on %dx%d (%s engine)", events.size,
                 n_cycles, width, height, engine)
-    return Recording(events=events, width=width, height=height,
-                     triggers=rig.triggers(n_cycles, t0_us=t0_us), metadata=metadata)
+    # every event was made inside the sensor with polarity +1 or -1, sorted by time
+    return Recording.from_checked(events=events, width=width, height=height,
+                                  triggers=rig.triggers(n_cycles, t0_us=t0_us),
+                                  metadata=metadata)

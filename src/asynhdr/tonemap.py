@@ -25,11 +25,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["REINHARD_KEY", "TONEMAP_METHODS", "tonemap"]
+__all__ = ["REINHARD_KEY", "TONEMAP_METHODS", "StableLogToneCurve", "tonemap"]
 
 REINHARD_KEY = 0.18
 """Key value ``a`` of Reinhard et al. 2002 (middle grey of the scaled image)."""
@@ -141,3 +142,66 @@ def tonemap(
         raise ValueError(f"tonemap: gamma must be finite and > 0, got {gamma}")
     v = fn(a, float(low_percentile), float(high_percentile), float(gamma))
     return np.floor(np.clip(v, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
+@dataclass
+class StableLogToneCurve:
+    """The ``"log"`` tone curve for a sequence, with black and white points that move
+    slowly: no flicker from frame to frame.
+
+    Per frame the anchors are ``log`` of the low and high percentiles of its positive
+    pixels, as in :func:`tonemap`; the curve maps with their exponential moving average
+    over frames, ``A_n = a A_(n-1) + (1 - a) anchors_n`` with ``a = exp(-1 / tau_frames)``
+    (the first frame starts the average). ``tau_frames = 0`` follows every frame (the
+    per-frame curve, which flickers when the percentiles do); ``inf`` keeps the first
+    frame's curve. A frame with fewer than two distinct positive values keeps the
+    previous anchors. Call it on frames in order; ``anchors`` holds ``(log lo, log hi)``
+    of each frame mapped.
+
+    Why a moving average: the sequence is reconstructed one cycle at a time, so the
+    curve is known without reading the recording twice, and a scene that brightens over
+    seconds is followed while cycle-to-cycle noise of the percentiles is averaged out.
+    """
+
+    low_percentile: float = 0.5
+    high_percentile: float = 99.5
+    tau_frames: float = 10.0
+    anchors: list[tuple[float, float]] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        if not (0.0 <= self.low_percentile < self.high_percentile <= 100.0):
+            raise ValueError("StableLogToneCurve: expected 0 <= low_percentile < "
+                             f"high_percentile <= 100, got {self.low_percentile}, "
+                             f"{self.high_percentile}")
+        if not self.tau_frames >= 0:
+            raise ValueError(f"StableLogToneCurve: tau_frames must be >= 0, got "
+                             f"{self.tau_frames}")
+
+    def __call__(self, image: npt.ArrayLike) -> np.ndarray:
+        """The next frame as uint8 ``(height, width)``."""
+        a = np.asarray(image, dtype=np.float64)
+        if a.ndim != 2:
+            raise ValueError(f"StableLogToneCurve: expected a 2-D image, got shape {a.shape}")
+        finite = np.isfinite(a)
+        pos = a[finite & (a > 0)]
+        cur: tuple[float, float] | None = None
+        if pos.size:
+            lo, hi = (float(v) for v in np.percentile(pos, [self.low_percentile,
+                                                           self.high_percentile]))
+            if hi > lo:
+                cur = (math.log(lo), math.log(hi))
+        if self.anchors:
+            prev = self.anchors[-1]
+            if cur is None:
+                cur = prev
+            else:
+                w = math.exp(-1.0 / self.tau_frames) if self.tau_frames > 0 else 0.0
+                cur = (w * prev[0] + (1 - w) * cur[0], w * prev[1] + (1 - w) * cur[1])
+        if cur is None:
+            return np.where(finite & (a > 0), _MID_GREY, 0).astype(np.uint8)
+        self.anchors.append(cur)
+        log_lo, log_hi = cur
+        with np.errstate(divide="ignore", invalid="ignore"):
+            la = np.log(np.where(finite & (a > 0), a, math.exp(log_lo)))
+        v = np.clip((la - log_lo) / (log_hi - log_lo), 0.0, 1.0)
+        return np.floor(v * 255.0 + 0.5).astype(np.uint8)

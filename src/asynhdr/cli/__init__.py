@@ -1,34 +1,27 @@
 """The ``asynhdr`` command line: subcommands wire the library together.
 
-Each subcommand lives in its own module and registers itself on ``app``.
+Each subcommand lives in its own module, which registers itself on ``app``
+(:mod:`asynhdr.cli._app`); :func:`_register` imports them all.
 """
 
 from __future__ import annotations
 
-import logging
-
-import typer
-
-app = typer.Typer(
-    name="asynhdr",
-    help="Event-based asynchronous HDR imaging by temporal light modulation.",
-    no_args_is_help=True,
-    add_completion=False,
-    pretty_exceptions_enable=False,
-)
-
-
-@app.callback()
-def _root(verbose: bool = typer.Option(False, "--verbose", "-v", help="Log progress.")) -> None:
-    logging.basicConfig(
-        level=logging.INFO if verbose else logging.WARNING,
-        format="%(levelname)s %(name)s: %(message)s",
-    )
+from asynhdr.cli._app import app
 
 
 def _register() -> None:
     # Each import adds its commands to ``app``.
-    from asynhdr.cli import bench, core, design, generator, info, waveform  # noqa: F401
+    from asynhdr.cli import (  # noqa: F401
+        bench,
+        convert,
+        core,
+        design,
+        generator,
+        info,
+        reconstruct,
+        video,
+        waveform,
+    )
 
 
 def main() -> None:

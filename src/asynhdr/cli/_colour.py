@@ -40,5 +40,5 @@ def write_colour(stem: Path, image: np.ndarray, metadata: dict[str, Any], format
     rgb = reconstruct_colour(image, cfa, transmittance=t, method=method)
     info = dict(extra, cfa=cfa, demosaic=method, demosaic_domain="log", colour="linear RGB")
     for f in formats:
-        write_rgb_image(stem.with_suffix("." + f), rgb, tonemap=tonemap,
+        write_rgb_image(stem.parent / f"{stem.name}.{f}", rgb, tonemap=tonemap,
                         metadata=info if f in ("exr", "tif") else None)

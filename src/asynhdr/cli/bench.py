@@ -16,7 +16,7 @@ import typer
 from rich.markup import escape
 from rich.table import Table
 
-from asynhdr.cli import app
+from asynhdr.cli._app import app
 from asynhdr.cli.core import console, err_console, fail, progress_bar
 
 PRESET_SIZES: dict[str, tuple[int, int]] = {

@@ -1,23 +1,37 @@
-"""``asynhdr demo``, ``simulate``, ``calibrate``, ``reconstruct``."""
+"""``asynhdr demo`` and ``simulate``; the helpers every command shares (errors that name
+flags, the progress bar, output checks)."""
 
 from __future__ import annotations
 
+import functools
+import inspect
 import json
 import math
+import re
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
 import typer
 from rich.console import Console
-from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn
+from rich.progress import Progress as RichProgress
 from rich.table import Table
 
-from asynhdr.cli import app
+from asynhdr.cli._app import app
+from asynhdr.reconstruct import DEFAULT_K
+from asynhdr.rig import Rig
+from asynhdr.simulate import simulate as _simulate
+from asynhdr.source import Progress
+
+
+def _default(func: Any, name: str) -> Any:
+    """The default of ``func``'s parameter ``name``, where it is written once."""
+    return inspect.signature(func).parameters[name].default
 
 console = Console(width=None if sys.stdout.isatty() else 150)
 err_console = Console(stderr=True, width=None if sys.stderr.isatty() else 110)
@@ -25,26 +39,67 @@ err_console = Console(stderr=True, width=None if sys.stderr.isatty() else 110)
 IMAGE_FORMATS = ("exr", "hdr", "npy", "png", "tif")
 
 
-def fail(msg: str) -> None:
-    """Print an error and exit with status 2."""
-    err_console.print(f"[bold red]error:[/] {msg}")
+@functools.cache
+def _option_flags() -> dict[str, str]:
+    """Python name -> flag of every option of every command (``period_us`` ->
+    ``--period-us``)."""
+    group = typer.main.get_command(app)
+    flags: dict[str, str] = {}
+    for cmd in getattr(group, "commands", {}).values():
+        for p in cmd.params:
+            opts = [o for o in getattr(p, "opts", []) if o.startswith("--")]
+            if p.name and opts and getattr(p, "param_type_name", "") == "option":
+                flags.setdefault(p.name, max(opts, key=len))
+    return flags
+
+
+def as_flags(msg: str) -> str:
+    """``msg`` with the library's parameter names turned into the command line's flags:
+    ``period_us`` -> ``--period-us``, ``single=True`` -> ``--single`` (names with an
+    underscore, and ``name=True``, so that ordinary words stay as they are)."""
+    for name, flag in _option_flags().items():
+        msg = re.sub(rf"(?<![\w-]){re.escape(name)}=(True|False)(?![\w-])", flag, msg)
+        if "_" in name:
+            msg = re.sub(rf"(?<![\w-]){re.escape(name)}(?![\w-])", flag, msg)
+    return msg
+
+
+def fail(msg: str) -> NoReturn:
+    """Print an error (library parameter names as this command's flags) and exit with
+    status 2."""
+    err_console.print(f"[bold red]error:[/] {as_flags(msg)}", highlight=False)
     raise typer.Exit(code=2)
 
 
 @contextmanager
-def progress_bar() -> Iterator[Callable[[str, int, int], None]]:
-    """A rich progress bar driven by ``update(stage, done, total)`` callbacks."""
-    with Progress(TextColumn("{task.description:<22}"), BarColumn(),
-                  TextColumn("{task.completed}/{task.total}"), TimeElapsedColumn(),
-                  console=err_console, transient=False) as prog:
+def progress_bar() -> Iterator[Progress]:
+    """A rich progress bar driven by the library's progress protocol
+    ``update(stage, done, total)`` (``total`` None: not known)."""
+    with RichProgress(TextColumn("{task.description:<22}"), BarColumn(), MofNCompleteColumn(),
+                      TimeElapsedColumn(),
+                      console=err_console, transient=False) as prog:
         tasks: dict[str, Any] = {}
 
-        def update(stage: str, done: int, total: int) -> None:
+        def update(stage: str, done: int, total: int | None) -> None:
             if stage not in tasks:
                 tasks[stage] = prog.add_task(stage, total=total)
             prog.update(tasks[stage], completed=done, total=total)
 
         yield update
+
+
+def check_outputs(paths: list[Path], *, overwrite: bool) -> None:
+    """Before any work: every output can be written; an existing one only with
+    ``--overwrite`` (and never a read-only one). Exits with a message otherwise."""
+    from asynhdr._atomic import check_output
+
+    for p in paths:
+        try:
+            check_output(p, overwrite=overwrite)
+        except FileExistsError:
+            fail(f"{p}: exists; pass --overwrite to replace it")
+        except ValueError as exc:
+            fail(str(exc))
 
 
 def _parse_formats(formats: str) -> list[str]:
@@ -70,13 +125,16 @@ def demo(
     out: Path = typer.Option(Path("out/demo"), help="Output folder."),
     width: int = typer.Option(640, help="Sensor width (pixels)."),
     height: int = typer.Option(480, help="Sensor height (pixels)."),
-    preset: str = typer.Option("v2e", help="Sensor preset: ideal | v2e | imx636 | davis346."),
+    preset: str = typer.Option(_default(_simulate, "sensor"),
+                               help="Sensor preset: ideal | v2e | imx636 | davis346."),
     compare: str | None = typer.Option(None, help="A second preset whose SNR columns are "
                                        "printed beside the first (e.g. ideal)."),
-    engine: str = typer.Option("exact", help="Simulator engine: exact | stepped."),
+    engine: str = typer.Option(_default(_simulate, "engine"),
+                               help="Simulator engine: auto (exact for a static scene, "
+                               "stepped for a moving one) | exact | stepped."),
     n_cycles: int = typer.Option(3, help="Chart cycles to simulate."),
     n_flat: int = typer.Option(4, help="Flat-field captures for the c-map."),
-    k: float = typer.Option(10.0, help="k of the exponential weighting 2^(-k t)."),
+    k: float = typer.Option(DEFAULT_K, help="k of the exponential weighting 2^(-k t)."),
     seed: int = typer.Option(0, help="Seed of each capture's randomness."),
     sensor_seed: int = typer.Option(1, help="Seed of the sensor's frozen mismatch."),
 ) -> None:
@@ -249,6 +307,21 @@ def _scene_from_spec(spec: str, width: int, height: int, scale: float | None,
                              name=Path(spec).stem, unit="lux", fit="pad")
 
 
+def _moving(sc: Any, spec: str, *, duration_us: float, frame_step_us: float) -> Any:
+    """The scene moved by ``--motion VX,VY`` (px/s) over the capture."""
+    from asynhdr.scene import moving_scene
+
+    try:
+        vx, vy = (float(v) for v in spec.split(","))
+    except ValueError:
+        fail(f"--motion: expected VX,VY in pixels per second (e.g. 200,0), got {spec!r}")
+    if getattr(sc, "cfa", None):
+        fail("--motion: a moving colour scene is not supported; drop --cfa/--colour")
+    return moving_scene(sc.radiance, velocity_px_per_s=(vx, vy), duration_us=duration_us,
+                        frame_step_us=frame_step_us, unit=getattr(sc, "unit", "relative"),
+                        name=getattr(sc, "name", ""))
+
+
 @app.command()
 def simulate(
     scene: str = typer.Argument(..., help="'chart' (the paper's step chart), "
@@ -257,21 +330,23 @@ def simulate(
                              "(.h5, .npz, .raw EVT 3.0, .txt)."),
     width: int = typer.Option(640, help="Sensor width (pixels)."),
     height: int = typer.Option(480, help="Sensor height (pixels)."),
-    preset: str = typer.Option("v2e", help="Sensor preset."),
+    preset: str = typer.Option(_default(_simulate, "sensor"), help="Sensor preset."),
     n_cycles: int = typer.Option(3, help="Modulation cycles."),
-    period_us: int | None = typer.Option(None, help="Cycle period (µs); default 50,000."),
+    period_us: int | None = typer.Option(None, help=f"Cycle period (µs); default "
+                                         f"{Rig.period_us:,}."),
     ramp_fraction: float | None = typer.Option(None, help="Part of the cycle the ramp takes "
-                                               "(paper rig; default 0.9)."),
+                                               f"(paper rig; default {Rig.ramp_fraction})."),
     t1_shape: str | None = typer.Option(None, help="Scene panel ramp: linear | exponential "
-                                        "(paper rig; default linear)."),
+                                        f"(paper rig; default {Rig.t1_shape})."),
     t2_shape: str | None = typer.Option(None, help="Reference panel ramp: linear | "
-                                        "exponential (paper rig; default linear)."),
-    panel: str = typer.Option("ideal", help="Panels the drive goes through: ideal (the "
+                                        f"exponential (paper rig; default {Rig.t2_shape})."),
+    panel: str = typer.Option(Rig.panel, help="Panels the drive goes through: ideal (the "
                               "target at once) | tn | fast_shutter (real LC panels)."),
-    pre_emphasis: bool = typer.Option(True, help="Design the panels' drive to invert their "
-                                      "response (with --panel tn or fast_shutter)."),
+    pre_emphasis: bool = typer.Option(Rig.pre_emphasis, help="Design the panels' drive to "
+                                      "invert their response (with --panel tn or "
+                                      "fast_shutter)."),
     l_const: float | None = typer.Option(None, help="Reference radiance, in the scene's unit "
-                                         "(paper rig; default 10)."),
+                                         f"(paper rig; default {Rig.l_const:g})."),
     rig_file: Path | None = typer.Option(None, "--rig", help="Rig file (TOML) to simulate "
                                          "(from 'asynhdr design')."),
     rig_out: Path | None = typer.Option(None, "--rig-out", help="Write the rig (and sensor) "
@@ -282,18 +357,28 @@ def simulate(
     seed: int = typer.Option(0, help="Seed of this capture's randomness."),
     sensor_seed: int = typer.Option(1, help="Seed of the sensor's frozen mismatch "
                                     "(same seed, same sensor)."),
-    engine: str = typer.Option("exact", help="Simulator engine: exact | stepped."),
-    dt_us: float = typer.Option(5.0, help="Step of the stepped engine (µs)."),
+    engine: str = typer.Option(_default(_simulate, "engine"),
+                               help="Simulator engine: auto (exact for a static scene, "
+                               "stepped for a moving one) | exact | stepped."),
+    dt_us: float = typer.Option(_default(_simulate, "dt_us"),
+                                help="Largest step of the time grid (µs)."),
     cfa: str | None = typer.Option(None, "--cfa", help="Colour sensor: a Bayer filter "
                                    "(rggb, bggr, grbg, gbrg) over the pixels; needs an RGB "
                                    "image. Default: grey."),
     colour: bool = typer.Option(False, "--colour", help="Same as --cfa rggb."),
+    motion: str | None = typer.Option(None, help="Move the scene across the sensor: "
+                                      "VX,VY in pixels per second (a pan); simulated by the "
+                                      "stepped engine."),
+    frame_step_us: float = typer.Option(1_000.0, help="With --motion: time between the "
+                                        "moving scene's frames (µs)."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing file."),
 ) -> None:
     """Simulate a scene seen through the rig and write the recording."""
     from asynhdr.io import write_recording
     from asynhdr.sensor.params import get_preset
     from asynhdr.simulate import simulate as run
 
+    check_outputs([out], overwrite=overwrite)
     try:
         sensor = get_preset(preset)
         rig = _simulate_rig(preset, rig_file, period_us=period_us, ramp_fraction=ramp_fraction,
@@ -304,11 +389,14 @@ def simulate(
         sc = _scene_from_spec(scene, width, height, scale,
                               target=_rig_middle(rig),
                               cfa=cfa or ("rggb" if colour else None))
+        if motion is not None:
+            sc = _moving(sc, motion, duration_us=n_cycles * rig.period_us,
+                         frame_step_us=frame_step_us)
         with progress_bar() as update:
             rec = run(sc, rig=rig, sensor=sensor, n_cycles=n_cycles, rng=seed,
                       sensor_seed=sensor_seed, engine=engine, dt_us=dt_us,
-                      progress=lambda d, t: update("simulate", d, t))
-        write_recording(out, rec)
+                      progress=update)
+        write_recording(out, rec, overwrite=overwrite)
         if rig_out is not None:
             from asynhdr import __version__
             from asynhdr.io.rigfile import write_rig
@@ -342,164 +430,17 @@ def _simulate_rig(preset: str, rig_file: Path | None, *, period_us: int | None,
     """The rig ``simulate`` uses: a rig file; else, when any of the paper rig's options is
     given, that rig (the others at their defaults); else the designed rig of the preset
     (:data:`asynhdr.design.DESIGNED`)."""
-    from asynhdr.rig import Rig
-
     if rig_file is not None:
         from asynhdr.io.rigfile import read_rig
 
         return read_rig(rig_file).rig
     paper = (ramp_fraction, t1_shape, t2_shape, l_const)
     if any(v is not None for v in paper) or panel != "ideal":
-        return Rig(period_us=period_us or 50_000,
-                   ramp_fraction=0.9 if ramp_fraction is None else ramp_fraction,
-                   t1_shape=t1_shape or "linear", t2_shape=t2_shape or "linear",  # type: ignore[arg-type]
-                   l_const=10.0 if l_const is None else l_const, panel=panel,
+        return Rig(period_us=Rig.period_us if period_us is None else period_us,
+                   ramp_fraction=Rig.ramp_fraction if ramp_fraction is None else ramp_fraction,
+                   t1_shape=t1_shape or Rig.t1_shape, t2_shape=t2_shape or Rig.t2_shape,  # type: ignore[arg-type]
+                   l_const=Rig.l_const if l_const is None else l_const, panel=panel,
                    pre_emphasis=pre_emphasis)
     from asynhdr.design import default_rig
 
     return default_rig(preset, period_us=period_us)
-
-
-# --------------------------------------------------------------------------- calibrate
-
-
-@app.command()
-def calibrate(
-    flats: list[Path] = typer.Argument(..., help="Flat-field recordings of one sensor."),
-    out: Path = typer.Option(..., "--out", "-o", help="c-map to write (.npz)."),
-    k: float = typer.Option(10.0, help="k of the exponential weighting."),
-) -> None:
-    """Estimate the c-map (per-pixel threshold correction) from flat-field recordings."""
-    from asynhdr.calibrate import estimate_cmap
-    from asynhdr.io import open_recording
-    from asynhdr.io.cmap import save_cmap
-
-    try:
-        caps = []
-        with progress_bar() as update:
-            for i, f in enumerate(flats):
-                caps.append(open_recording(f))
-                update("read flat fields", i + 1, len(flats))
-        cmap = estimate_cmap(caps, k=k)
-        cmap.metadata["sources"] = [str(f) for f in flats]
-        save_cmap(out, cmap)
-    except (ValueError, FileNotFoundError) as exc:
-        fail(str(exc))
-    ex = cmap.maps[f"exp:k={k:g}"]
-    console.print(f"c-map from {len(flats)} captures ({cmap.metadata['n_cycles']} cycles): "
-                  f"{', '.join(cmap.maps)}; exp map spread (std) {float(np.std(ex)):.4f} -> {out}")
-
-
-# --------------------------------------------------------------------------- reconstruct
-
-
-@app.command()
-def reconstruct(
-    recording: Path = typer.Argument(..., help="Event recording (any supported format)."),
-    out: Path = typer.Option(..., "--out", "-o", help="Output folder."),
-    method: str = typer.Option("exp", help="raw | linear | quadratic | poly5 | exp | ttfe | "
-                               "count | invert | ml."),
-    k: float = typer.Option(10.0, help="k of the exponential weighting."),
-    cmap: Path | None = typer.Option(None, help="c-map from 'asynhdr calibrate'."),
-    threshold: float | None = typer.Option(None, help="Contrast threshold c (default: the "
-                                           "recording's sensor, else 0.2)."),
-    window_us: float | None = typer.Option(None, help="Integration window after each cycle "
-                                           "start (default: the ramp, else the period)."),
-    period_us: float | None = typer.Option(None, help="Modulation period in µs, when known "
-                                           "(needed with fewer than two trigger edges)."),
-    single: bool = typer.Option(False, "--single", help="Treat the whole recording as one "
-                                "cycle (a single ramp, e.g. a temporal-mapping capture)."),
-    width: int | None = typer.Option(None, help="Sensor width, for files without geometry."),
-    height: int | None = typer.Option(None, help="Sensor height, for files without geometry."),
-    formats: str = typer.Option("exr,png", help=f"Comma-separated, from {IMAGE_FORMATS}."),
-    tonemap: str = typer.Option("log", help="PNG tone mapping: log | reinhard | linear."),
-    demosaic: str = typer.Option("malvar", help="Colour recordings (a CFA in the metadata): "
-                                 "malvar | bilinear | none (write the raw mosaic)."),
-    rig: Path | None = typer.Option(None, "--rig", help="Rig file (TOML, from 'asynhdr "
-                                    "design' or 'simulate --rig-out'): the rig and sensor "
-                                    "of a real recording, for ml, invert and ttfe."),
-    calibration: Path | None = typer.Option(None, "--calibration", help="Calibration file "
-                                            "from 'asynhdr calibrate-thresholds' (per-pixel "
-                                            "ON and OFF thresholds) for ml."),
-) -> None:
-    """Reconstruct one HDR image per modulation cycle.
-
-    The file is read cycle by cycle (memory flat in file size) after one pass that
-    finds its cycles; with --single it is read whole.
-    """
-    from asynhdr.io.cmap import load_cmap
-    from asynhdr.io.images import write_image
-
-    fmts = _parse_formats(formats)
-    meta: dict[str, Any] = {"source": str(recording), "method": method, "k": k,
-                            "cmap": str(cmap) if cmap else None,
-                            "radiometric": method in ("ttfe", "invert", "ml")}
-    from asynhdr.cli.ml_support import MlOutputs
-
-    mlo = MlOutputs.open(rig, calibration, method=method, formats=fmts, fail=fail)
-    if rig is not None:
-        meta["rig"] = str(rig)
-
-    from asynhdr.cli._colour import DEMOSAIC_CHOICES, write_colour
-
-    if demosaic not in DEMOSAIC_CHOICES:
-        fail(f"--demosaic: expected one of {DEMOSAIC_CHOICES}, got {demosaic!r}")
-    rec_meta: dict[str, Any] = {}
-
-    def write(i: int, img: np.ndarray, unit: str) -> None:
-        stem = out / f"{recording.stem}_{method}_{i:04d}"
-        unit = mlo.unit or unit
-        if mlo.active:
-            mlo.write(stem, img, dict(meta, cycle=i, unit=unit), tonemap=tonemap)
-            return
-        if rec_meta.get("cfa") and demosaic != "none":
-            write_colour(stem, img, rec_meta, fmts, method=demosaic, tonemap=tonemap,
-                         extra=dict(meta, cycle=i, unit=unit))
-            return
-        for f in fmts:
-            if f == "png":
-                write_image(stem.with_suffix(".png"), img, tonemap=tonemap)
-            else:
-                write_image(stem.with_suffix("." + f), img,
-                            metadata=dict(meta, cycle=i, unit=unit)
-                            if f in ("exr", "tif") else None)
-
-    try:
-        cm = load_cmap(cmap) if cmap is not None else None
-        if single:
-            from asynhdr.io import open_recording
-            from asynhdr.reconstruct import reconstruct as run
-            from asynhdr.reconstruct import windows_for
-
-            rec = open_recording(recording, width=width, height=height)
-            rec_meta.update(rec.metadata)
-            windows = windows_for(rec, window_us=window_us, single=True)
-            opts = mlo.options
-            if opts is not None:  # one ramp from rest: the pixels start on their reference
-                opts["settled_start"] = True
-            img = run(rec, method=method, k=k, cmap=cm, windows=windows,
-                      threshold=threshold, rig=mlo.rig, ml_options=opts)[0]
-            write(0, img, rec.metadata.get("radiance_unit", "relative"))
-            console.print(f"1 image ({method}) from {rec.events.size:,} events -> {out}/")
-            return
-        from asynhdr.reconstruct import reconstruct_file
-
-        with progress_bar() as update:
-            plan = reconstruct_file(recording, method=method, k=k, cmap=cm,
-                                    window_us=window_us, period_us=period_us,
-                                    threshold=threshold, width=width, height=height,
-                                    progress=lambda n: update("scan (events)", n, n),
-                                    rig=mlo.rig, ml_options=mlo.options)
-            unit = plan.metadata.get("radiance_unit", "relative")
-            rec_meta.update(plan.metadata)
-            for i, _, img in plan:
-                write(i, img, unit)
-                update("reconstruct (cycles)", i + 1, len(plan))
-    except (ValueError, FileNotFoundError) as exc:
-        fail(str(exc))
-    if rec_meta.get("cfa") and demosaic != "none":
-        console.print(f"colour recording (CFA {rec_meta['cfa']}): demosaiced ({demosaic}) "
-                      "to RGB")
-    console.print(f"{len(plan)} image{'s' if len(plan) != 1 else ''} ({method}) from "
-                  f"{plan.n_events:,} events, one cycle "
-                  f"at a time -> {out}/")

@@ -8,7 +8,7 @@ from pathlib import Path
 import typer
 from rich.table import Table
 
-from asynhdr.cli import app
+from asynhdr.cli._app import app
 from asynhdr.cli.core import console, fail, progress_bar
 from asynhdr.design import (
     DEFAULT_FRAME_RATE_HZ,

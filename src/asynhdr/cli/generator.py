@@ -9,7 +9,7 @@ import typer
 from rich.console import Console
 from rich.markup import escape
 
-from asynhdr.cli import app
+from asynhdr.cli._app import app
 from asynhdr.generator import (
     DEFAULT_TIMEOUT_MS,
     DIALECTS,

@@ -14,58 +14,17 @@ from rich.progress import Progress, SpinnerColumn, TextColumn
 from rich.table import Table
 
 from asynhdr._atomic import atomic_path
-from asynhdr.cli import app
-from asynhdr.io import RecordingScan, scan_recording
-from asynhdr.segment import MIN_RATE_CONFIDENCE, Cycles, cycles_from_rate, cycles_from_triggers
+from asynhdr.cli._app import app
+from asynhdr.cli.core import as_flags, check_outputs
+from asynhdr.segment import Cycles, NoCyclesError, find_cycles
+from asynhdr.source import Scan
 
-__all__ = ["detect_cycles", "info", "save_rate_plot"]
+__all__ = ["info", "save_rate_plot"]
 
 logger = logging.getLogger(__name__)
 
-RATE_BIN_US = 100
-"""Bin width (µs) of the event-rate histogram used to find cycles without triggers."""
 
-MIN_CONFIDENCE = MIN_RATE_CONFIDENCE
-"""Cycles found from the event rate with a lower confidence are not reported."""
-
-
-def detect_cycles(scan: RecordingScan, *, period_us: float | None = None
-                  ) -> tuple[Cycles | None, str]:
-    """Cycles from the trigger edges when there are at least two rising edges on a
-    channel (the channel with most rising edges), else from the event rate.
-
-    Returns the cycles (None when none could be found, or the event rate gives a
-    confidence below :data:`MIN_CONFIDENCE`) and a sentence saying how.
-    """
-    tr = scan.triggers
-    notes = []
-    rising = tr[tr["rising"]] if tr.size else tr
-    if rising.size:
-        ids, counts = np.unique(rising["id"], return_counts=True)
-        ch = int(ids[int(np.argmax(counts))])
-        try:
-            c = cycles_from_triggers(tr, period_us=period_us, channel=ch)
-            how = f"from rising trigger edges on channel {ch}"
-            if ids.size > 1:
-                how += f" (of channels {ids.tolist()})"
-            return c, how
-        except ValueError as exc:
-            notes.append(f"triggers not usable: {exc}")
-    tail = f" ({'; '.join(notes)})" if notes else ""
-    if scan.rate_counts.size == 0:
-        return None, "no events" + tail
-    try:
-        c = cycles_from_rate(scan.rate_counts, bin_us=scan.rate_bin_us,
-                             t0_us=scan.rate_t0_us, period_us=period_us)
-    except ValueError as exc:
-        return None, f"none found from the event rate: {exc}" + tail
-    if c.confidence < MIN_CONFIDENCE:
-        return None, (f"no periodic bursts in the event rate (best guess: period "
-                      f"{c.period_us:.1f} µs, confidence {c.confidence:.2f})" + tail)
-    return c, "from the event-rate envelope" + tail
-
-
-def save_rate_plot(path: Path, scan: RecordingScan, cycles: Cycles | None) -> None:
+def save_rate_plot(path: Path, name: str, scan: Scan, cycles: Cycles | None) -> None:
     """Event rate over time (1 ms bins) with cycle starts and trigger edges, as PNG
     (written atomically)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -97,7 +56,7 @@ def save_rate_plot(path: Path, scan: RecordingScan, cycles: Cycles | None) -> No
                 label="trigger edges (red rising, orange falling)")
     ax.set_xlabel(f"time since {t0} µs [s]")
     ax.set_ylabel(f"event rate [Mev/s] ({width_us / 1000:g} ms bins)")
-    ax.set_title(Path(scan.info["path"]).name)
+    ax.set_title(Path(name).name)
     ax.legend(loc="upper right", fontsize=8)
     fig.tight_layout()
     with atomic_path(path) as tmp:
@@ -140,10 +99,13 @@ def _table(info: dict[str, Any], cycles: Cycles | None, how: str) -> Table:
         t.add_row("trigger records",
                   ", ".join(f"{k}: {v}" for k, v in records.items()) or "none")
     if cycles is None:
-        t.add_row("cycles", f"none ({how})")
+        t.add_row("cycles", f"none: {how}")
     else:
         s = cycles.summary()
         t.add_row("cycles", f"{s['cycles']}, {how}")
+        if s["warmup"]:
+            t.add_row("warm-up", "cycle 0 (the modulation starts with the recording: its "
+                      "pixels start from another state)")
         t.add_row("period", f"{s['period_us']:.3f} µs ({s['frequency_hz']:.4g} Hz)")
         t.add_row("first start", f"{s['first_start_us']} µs")
         low = " (low: the recording may not be modulated)" if s["confidence"] < 0.5 else ""
@@ -153,9 +115,14 @@ def _table(info: dict[str, Any], cycles: Cycles | None, how: str) -> Table:
     return t
 
 
+_HOW = {"triggers": "from the rising trigger edges", "rig": "from the simulated rig",
+        "event_rate": "from the event-rate envelope"}
+
+
 @app.command("info")
 def info(
-    file: Path = typer.Argument(..., help="Recording: .raw, .dat, .aedat4, .h5, .npz, .txt, .csv"),
+    file: Path = typer.Argument(..., help="Recording: .raw, .dat, .aedat4, .h5, .hdf5, .npz, "
+                                ".txt, .csv"),
     width: int | None = typer.Option(None, "--width", help="Sensor width (pixels), for files "
                                      "without geometry."),
     height: int | None = typer.Option(None, "--height", help="Sensor height (pixels)."),
@@ -165,31 +132,44 @@ def info(
                                            "(µs), when known."),
     plot: Path | None = typer.Option(None, "--plot", help="Save an event-rate plot (PNG)."),
     as_json: bool = typer.Option(False, "--json", help="Print JSON instead of a table."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing plot."),
 ) -> None:
-    """Describe a recording: format, sensor, geometry, events, rates, triggers, cycles."""
+    """Describe a recording: format, sensor, geometry, events, rates, triggers, and the
+    cycles that every other command would use."""
+    from asynhdr.io import open_source
+
     err = Console(stderr=True)
+    if plot is not None:
+        check_outputs([plot], overwrite=overwrite)
     try:
+        src = open_source(file, width=width, height=height, time_unit=time_unit)
         with Progress(SpinnerColumn(), TextColumn("{task.description}"), console=err,
                       transient=True) as prog:
             task = prog.add_task(f"reading {file.name}", total=None)
 
-            def progress(n: int) -> None:
-                prog.update(task, description=f"reading {file.name}: {n:,} events")
+            def progress(stage: str, n: int, total: int | None) -> None:
+                prog.update(task, description=f"{stage} {file.name}: {n:,} events")
 
-            scan = scan_recording(file, width=width, height=height, time_unit=time_unit,
-                                  rate_bin_us=RATE_BIN_US, progress=progress)
-        cycles, how = detect_cycles(scan, period_us=period_us)
+            description = src.describe(progress=progress)
+            cycles: Cycles | None
+            try:
+                cycles = find_cycles(src, period_us=period_us, progress=progress)
+                how = _HOW[cycles.source]
+            except NoCyclesError as exc:
+                cycles = None
+                hint = "--single" if period_us is not None else "--period-us or --single"
+                how = as_flags(f"{exc.reason}; pass {hint}")
         if plot is not None:
-            save_rate_plot(plot, scan, cycles)
+            save_rate_plot(plot, str(file), src.scan(), cycles)
     except (FileNotFoundError, ValueError) as exc:
-        err.print(f"[red]error:[/red] {exc}", highlight=False)
+        err.print(f"[red]error:[/red] {as_flags(str(exc))}", highlight=False)
         raise typer.Exit(code=1) from None
     if as_json:
-        out = dict(scan.info)
+        out = dict(description)
         out["cycles"] = cycles.summary() if cycles is not None else None
         out["cycles_how"] = how
         typer.echo(json.dumps(out, indent=2, default=str))
     else:
-        Console().print(_table(scan.info, cycles, how))
+        Console().print(_table(description, cycles, how))
     if plot is not None:
         Console(stderr=True).print(f"event-rate plot: {plot}")

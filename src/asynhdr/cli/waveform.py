@@ -11,7 +11,7 @@ from rich.console import Console
 from rich.markup import escape
 
 from asynhdr._atomic import atomic_path
-from asynhdr.cli import app
+from asynhdr.cli._app import app
 from asynhdr.panel import PRESETS, Panel, PanelResponse, get_panel, tn_panel
 from asynhdr.rig import Rig
 from asynhdr.waveform import DEFAULT_CARRIER_HZ, DEFAULT_SAMPLE_RATE_HZ, Design, design

@@ -164,6 +164,7 @@ class Stream:
     width: int | None = None
     height: int | None = None
     source: str | None = None  # the camera
+    metadata: str | None = None  # asynhdr's metadata (JSON), when asynhdr wrote the file
 
 
 @dataclass
@@ -223,7 +224,8 @@ def _streams(name: str, header: bytes) -> dict[int, Stream]:
         out.setdefault(sid, Stream(id=sid, type=attrs.get("typeIdentifier", ""),
                                    name=attrs.get("originalOutputName", str(sid)),
                                    width=dim("sizeX"), height=dim("sizeY"),
-                                   source=attrs.get("source")))
+                                   source=attrs.get("source"),
+                                   metadata=attrs.get("asynhdr_metadata")))
     if not out:
         raise ValueError(f"{name}: AEDAT 4.0 header describes no stream (no outInfo nodes "
                          "in its XML)")

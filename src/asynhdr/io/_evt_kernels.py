@@ -47,6 +47,7 @@ __all__ = [
     "decode_evt3",
     "decode_evt3_sparse",
     "decode_evt21",
+    "encode_evt2",
     "encode_evt3",
     "evt3_sparse",
     "evt3_state_at",
@@ -730,7 +731,7 @@ def encode_evt3(events, triggers, i, j, state, width, out):
                 cur_high += _HIGH_STEP
             out[n] = np.uint16(0x8000 | (cur_high & 0xFFF))
             n += 1
-            low = 0
+            low = -1  # a TIME_LOW follows every TIME_HIGH before the next item, as sensors write
             continue  # re-check capacity; more steps may follow
         lo = t & 0xFFF
         if lo != low:
@@ -787,4 +788,65 @@ def encode_evt3(events, triggers, i, j, state, width, out):
     state[E_HIGH] = cur_high
     state[E_LOW] = low
     state[E_Y] = cur_y
+    return status, i, j, n
+
+
+# EVT 2.0 encoder state.
+E2_STARTED = 0
+E2_HIGH = 1  # time >> 6 of the last TIME_HIGH written
+ENCODER2_STATE_SIZE = 2
+
+
+@njit(cache=True, nogil=True, boundscheck=False)
+def encode_evt2(events, triggers, i, j, state, out):
+    """Encode time-sorted events and triggers, interleaved by time, into EVT 2.0 words.
+
+    Resumable like :func:`encode_evt3`: returns ``(status, i, j, n_words)``. A TIME_HIGH
+    word (bits 33..6 of the time; times must lie in ``[0, 2**34)`` µs) precedes the first
+    item and every change of those bits. CD words
+    carry type 0x1 (ON) or 0x0 (OFF), ts6 in bits 27..22, x in 21..11, y in 10..0;
+    EXT_TRIGGER words type 0xA, ts6 in 27..22, channel in 12..8, the edge's value in
+    bit 0. Triggers come before events of the same time. ``STATUS_BAD_TIME``: time went
+    back.
+    """
+    ne = events.shape[0]
+    nt = triggers.shape[0]
+    cap = out.shape[0]
+    n = 0
+    started = state[E2_STARTED]
+    cur_high = state[E2_HIGH]
+    status = STATUS_DONE
+    while i < ne or j < nt:
+        if n + 2 > cap:
+            status = STATUS_FULL
+            break
+        take_trigger = False
+        if j < nt:
+            if i >= ne or triggers[j].t <= events[i].t:
+                take_trigger = True
+        t = triggers[j].t if take_trigger else events[i].t
+        high = t >> 6
+        if started == 1 and high < cur_high:
+            status = STATUS_BAD_TIME
+            break
+        if started == 0 or high != cur_high:
+            cur_high = high
+            started = 1
+            out[n] = np.uint32(0x80000000 | (cur_high & 0xFFFFFFF))
+            n += 1
+            continue
+        ts6 = (t & 0x3F) << 22
+        if take_trigger:
+            tr = triggers[j]
+            out[n] = np.uint32(0xA0000000 | ts6 | ((np.int64(tr.id) & 0x1F) << 8)
+                               | (1 if tr.rising else 0))
+            j += 1
+        else:
+            ev = events[i]
+            typ = 0x10000000 if ev.p > 0 else 0
+            out[n] = np.uint32(typ | ts6 | (np.int64(ev.x) << 11) | np.int64(ev.y))
+            i += 1
+        n += 1
+    state[E2_STARTED] = started
+    state[E2_HIGH] = cur_high
     return status, i, j, n

@@ -38,20 +38,43 @@ scan the events again.
 
 from __future__ import annotations
 
+import html
+import json
 import logging
 import os
+import struct
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import numba
 import numpy as np
 
-from asynhdr.events import EVENT_DTYPE, TRIGGER_DTYPE, Recording, empty_triggers
+from asynhdr.events import (
+    EVENT_DTYPE,
+    TRIGGER_DTYPE,
+    Recording,
+    empty_triggers,
+    validate_events,
+    validate_triggers,
+)
 from asynhdr.io import _aedat_decode as _own
-from asynhdr.io import _pair_triggers, _require_file
+from asynhdr.io._common import (
+    FileWriter,
+    Format,
+    Header,
+    ReadOptions,
+    check_geometry,
+    json_metadata,
+    require_file,
+)
+from asynhdr.source import pair_triggers, rechunk
 
-__all__ = ["EXTERNAL_TRIGGER_TYPES", "aedat_info", "iter_aedat", "read_aedat"]
+__all__ = ["EXTERNAL_TRIGGER_TYPES", "FORMAT", "AedatWriter", "aedat_info", "iter_aedat",
+           "read_aedat"]
+
+METADATA_KEY = "asynhdr_metadata"
+"""Attribute of the event stream's ``info`` node holding the recording's metadata (JSON)."""
 
 logger = logging.getLogger(__name__)
 
@@ -170,14 +193,21 @@ class _Source:
     """One file's facts, geometry, triggers and event packets."""
 
     def __init__(self, p: Path):
-        try:
-            c = _own.open_container(p)
-        except OSError:
-            _require_file(p)  # a missing file or a folder gets its own message
-            raise
+        require_file(p)  # a missing file, a folder, a FIFO: named, never opened
+        c = _own.open_container(p)
         ev = c.stream_of_type("EVTS")
         self.facts = {"camera": "" if ev is None or ev.source is None else ev.source,
                       "streams": [s.name for s in c.streams.values()]}
+        self.stored: dict[str, Any] | None = None
+        if ev is not None and ev.metadata is not None:
+            try:
+                self.stored = json.loads(ev.metadata)
+            except ValueError as exc:
+                raise ValueError(f"{p}: the event stream's {METADATA_KEY} is not valid JSON: "
+                                 f"{exc}") from None
+            if not isinstance(self.stored, dict):
+                raise ValueError(f"{p}: the event stream's {METADATA_KEY} must be a JSON "
+                                 "object")
         if ev is None:
             raise ValueError(f"{p}: no event stream; streams found: {self.facts['streams']}")
         if ev.width is None or ev.height is None:
@@ -227,7 +257,7 @@ def aedat_info(path: str | os.PathLike[str]) -> dict[str, Any]:
     """Header facts of an AEDAT 4.0 file: ``camera``, ``width``, ``height``, ``streams``,
     ``trigger_records`` (every trigger record by type) and the external ``triggers``
     count, without decoding the events."""
-    p = _require_file(path)
+    p = require_file(path)
     src = _Source(p)
     tr, counts = src.triggers()
     info = _metadata(p, src.facts, counts)
@@ -246,15 +276,12 @@ def iter_aedat(
     """
     if chunk_events is not None and int(chunk_events) < 1:
         raise ValueError(f"iter_aedat: chunk_events must be >= 1, got {chunk_events}")
-    p = _require_file(path)
+    p = require_file(path)
     return _iter(p, chunk_events)
 
 
 def _check_resolution(p: Path, width: int, height: int) -> tuple[int, int]:
-    if not (0 < width <= 65536 and 0 < height <= 65536):
-        raise ValueError(f"{p}: the event stream's resolution {width}x{height} "
-                         "is not a sensor's")
-    return width, height
+    return check_geometry(str(p), width, height, "the event stream's resolution")
 
 
 def _packets(src: _Source) -> Iterator[np.ndarray]:
@@ -275,11 +302,9 @@ def _packets(src: _Source) -> Iterator[np.ndarray]:
 def _iter(p: Path, chunk_events: int | None) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     src = _Source(p)
     triggers, _ = src.triggers()
-    paired = _pair_triggers(_packets(src), triggers)
+    paired = pair_triggers(_packets(src), triggers)
     if chunk_events is not None:
-        from asynhdr.io import _rechunk
-
-        yield from _rechunk(paired, chunk_events=int(chunk_events))
+        yield from rechunk(paired, chunk_events=int(chunk_events))
         return
     yield from paired
 
@@ -361,9 +386,128 @@ def read_aedat(path: str | os.PathLike[str]) -> Recording:
     triggers, counts = _trigger_edges(records)
     meta = _metadata(p, src.facts, counts)
     width, height = src.width, src.height
+    if src.stored is not None:
+        meta = src.stored
     logger.info("%s: AEDAT 4.0 from %s, %dx%d, %d events, %d external trigger edges "
-                "(%d trigger records)", p, meta["camera"], width, height, events.size,
+                "(%d trigger records)", p, src.facts["camera"], width, height, events.size,
                 triggers.size, sum(counts.values()))
     # _convert_dv checked every pixel and wrote every polarity as +-1.
     return Recording.from_checked(events=events, width=width, height=height,
                                   triggers=triggers, metadata=meta)
+
+
+def _header(path: Path, opts: ReadOptions) -> Header:
+    src = _Source(path)
+    tr, counts = src.triggers()
+    facts = dict(_metadata(path, src.facts, counts), width=src.width, height=src.height,
+                 triggers=int(tr.size))
+    meta = src.stored if src.stored is not None else _metadata(path, src.facts, counts)
+    return Header(format="aedat4", width=src.width, height=src.height,
+                  geometry_source="the event stream's resolution", metadata=meta,
+                  facts=facts, sensor=str(src.facts["camera"]) or None, triggers=tr)
+
+
+_AEDAT_TYPES = {(True, 0): 1, (False, 0): 2, (True, 1): 4, (False, 1): 5}
+"""(rising, id) of an edge -> the AEDAT TriggerType it is written as."""
+_PACKET_EVENTS = 1 << 15
+
+
+def _xml(width: int, height: int, camera: str, metadata: str) -> bytes:
+    """The IOHeader's stream description (the layout dv-processing writes)."""
+    q = html.escape
+
+    def stream(sid: int, name: str, ident: str, info: str) -> str:
+        path = f"/outInfo/{sid}/"
+        attrs = "".join(f'<attr key="{k}" type="string">{q(v)}</attr>' for k, v in (
+            ("compression", "NONE"), ("originalModuleName", "asynhdr"),
+            ("originalOutputName", name), ("typeDescription", "Custom data type output."),
+            ("typeIdentifier", ident)))
+        return (f'<node name="{sid}" path="{path}">{attrs}<node name="info" '
+                f'path="{path}info/">{info}</node></node>')
+
+    src = f'<attr key="source" type="string">{q(camera)}</attr>'
+    ev_info = (f'<attr key="sizeX" type="int">{width}</attr><attr key="sizeY" type="int">'
+               f'{height}</attr>{src}<attr key="{METADATA_KEY}" type="string">'
+               f'{q(metadata)}</attr>')
+    return (f'<dv version="2.0"><node name="outInfo" path="/outInfo/">'
+            f'{stream(0, "events", "EVTS", ev_info)}{stream(1, "triggers", "TRIG", src)}'
+            "</node></dv>").encode()
+
+
+def _io_header(xml: bytes) -> bytes:
+    """The IOHeader flatbuffer: no compression, no file data table, the XML."""
+    head = struct.pack("<I4s4xHHHHH2x", 24, b"IOHE", 10, 20, 4, 8, 16)  # vtable at 12
+    table = struct.pack("<iiqI", 12, 0, -1, 4)  # at 24: compression, table at -1, the XML
+    body = struct.pack("<I", len(xml)) + xml + b"\0"
+    return head + table + body + b"\0" * (-len(body) % 4)
+
+
+def _packet(sid: int, ident: bytes, body: bytes) -> bytes:
+    """Stream id, size and a size-prefixed flatbuffer whose root table has one field, a
+    vector at byte 28 of the buffer (``body``: its length and elements)."""
+    fb = struct.pack("<II4sHHHH", 0, 16, ident, 6, 8, 4, 0) + struct.pack("<iI", 8, 4) + body
+    fb = struct.pack("<I", len(fb) - 4) + fb[4:]
+    return struct.pack("<ii", sid, len(fb)) + fb
+
+
+class AedatWriter(FileWriter):
+    """An AEDAT 4.0 file (uncompressed packets, no file data table) with an event stream
+    and a trigger stream, atomically; dv-processing and faery read it. Edges on channel 0
+    become EXTERNAL_SIGNAL edges, on channel 1 EXTERNAL_GENERATOR edges (the two kinds
+    the reader keeps); the recording's metadata is a JSON attribute of the event stream
+    (``asynhdr_metadata``). Events are written in packets of up to 32,768."""
+
+    def __init__(self, path: str | os.PathLike[str], *, width: int, height: int,
+                 metadata: dict[str, Any] | None = None, camera: str = "asynhdr",
+                 overwrite: bool = True) -> None:
+        super().__init__(path, overwrite=overwrite)
+        self.width, self.height = check_geometry(str(path), width, height,
+                                                 "the writer's arguments")
+        head = _io_header(_xml(self.width, self.height, camera,
+                               json_metadata(str(path), metadata)))
+        self._head = b"#!AER-DAT4.0\r\n" + struct.pack("<i", len(head)) + head
+
+    def _start(self, f: BinaryIO) -> None:
+        f.write(self._head)
+
+    def write(self, events: np.ndarray, triggers: np.ndarray | None = None) -> None:
+        """Append events (``EVENT_DTYPE``, sorted by time) and triggers (channels 0, 1)."""
+        f = self._file()
+        validate_events(events, width=self.width, height=self.height, require_sorted=True,
+                        name=f"{self.path}: events")
+        for a in range(0, events.size, _PACKET_EVENTS):
+            ev = events[a : a + _PACKET_EVENTS]
+            rec = np.zeros(ev.size, dtype=_own.DV_EVENT_DTYPE)
+            rec["timestamp"], rec["x"], rec["y"] = ev["t"], ev["x"], ev["y"]
+            rec["polarity"] = ev["p"] > 0
+            f.write(_packet(0, b"EVTS", struct.pack("<I", ev.size) + rec.tobytes()))
+        if triggers is not None and triggers.size:
+            validate_triggers(triggers, name=f"{self.path}: triggers")
+            bad = triggers["id"] > 1
+            if bad.any():
+                raise ValueError(f"{self.path}: trigger channel {int(triggers['id'][bad][0])}: "
+                                 "AEDAT 4.0 holds channels 0 (external signal) and 1 "
+                                 "(external generator) only")
+            m = triggers.size
+            pad = 4 * (m % 2)  # each table's int64 at a multiple of 8
+            offsets = [4 * m + pad + 24 * k + 8 - 4 * k for k in range(m)]
+            tables = b"".join(
+                struct.pack("<HHHHibxxxq", 8, 16, 8, 4, 8,
+                            _AEDAT_TYPES[(bool(r), int(i))], int(t))
+                for t, r, i in zip(triggers["t"], triggers["rising"], triggers["id"],
+                                   strict=True))
+            f.write(_packet(1, b"TRIG", struct.pack(f"<I{m}I", m, *offsets) + b"\0" * pad
+                            + tables))
+
+
+FORMAT = Format(
+    name="aedat4",
+    extensions=(".aedat4",),
+    description="iniVation AEDAT 4.0 (DV): uncompressed, LZ4 or Zstd",
+    sniff=lambda path, head: head.startswith(b"#!AER-DAT4.0"),
+    header=_header,
+    chunks=lambda path, header, n, opts: iter_aedat(path, chunk_events=n),
+    read=lambda path, header, opts: read_aedat(path),
+    writer=AedatWriter,
+)
+"""The ``.aedat4`` record of the format registry (:mod:`asynhdr.io`)."""

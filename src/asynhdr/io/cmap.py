@@ -17,12 +17,13 @@ __all__ = ["load_cmap", "save_cmap"]
 _PREFIX = "cmap__"
 
 
-def save_cmap(path: str | os.PathLike[str], cmap: CMap) -> Path:
-    """Write ``cmap`` to ``path`` (``.npz``), atomically."""
+def save_cmap(path: str | os.PathLike[str], cmap: CMap, *, overwrite: bool = True) -> Path:
+    """Write ``cmap`` to ``path`` (``.npz``), atomically (``overwrite`` False refuses an
+    existing file)."""
     target = Path(path)
     arrays = {_PREFIX + k: np.asarray(v, dtype=np.float32) for k, v in cmap.maps.items()}
     arrays["metadata"] = np.asarray(json.dumps(cmap.metadata))
-    with atomic_path(target) as tmp, open(tmp, "wb") as f:
+    with atomic_path(target, overwrite=overwrite) as tmp, open(tmp, "wb") as f:
         np.savez_compressed(f, **arrays)  # type: ignore[arg-type]
     return target
 

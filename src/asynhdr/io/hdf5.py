@@ -34,7 +34,6 @@ from typing import Any
 import h5py
 import numpy as np
 
-from asynhdr._atomic import atomic_path
 from asynhdr.events import (
     Recording,
     empty_triggers,
@@ -43,9 +42,22 @@ from asynhdr.events import (
     validate_events,
     validate_triggers,
 )
-from asynhdr.io import _int_field, _pair_triggers, _recording, _require_file
+from asynhdr.io._common import (
+    FileWriter,
+    Format,
+    Header,
+    ReadOptions,
+    check_geometry,
+    int_field,
+    json_metadata,
+    recording,
+    require_file,
+    resolve_geometry,
+)
+from asynhdr.source import pair_triggers
 
 __all__ = [
+    "FORMAT",
     "HDF5_FORMAT_VERSION",
     "Hdf5Writer",
     "hdf5_info",
@@ -100,7 +112,7 @@ def _ensure_plugins() -> None:
         import hdf5plugin  # noqa: F401
 
 
-class Hdf5Writer:
+class Hdf5Writer(FileWriter):
     """Write events (and triggers) to an HDF5 file in pieces, atomically.
 
     The file is written under a temporary name beside ``path`` and renamed when the
@@ -115,7 +127,9 @@ class Hdf5Writer:
     path : target file.
     width, height : sensor geometry, pixels.
     metadata : JSON-serialisable dict stored as the ``metadata`` attribute.
-    codec : "blosc" (default), "lz4", "gzip" or "none".
+    codec : "blosc" (default), "lz4", "gzip" or "none". Blosc is an HDF5 filter that
+        h5py reads only once ``hdf5plugin`` is imported; gzip is read everywhere.
+    overwrite : replace an existing file (else ``FileExistsError``).
     """
 
     def __init__(
@@ -126,53 +140,40 @@ class Hdf5Writer:
         height: int,
         metadata: dict[str, Any] | None = None,
         codec: str = "blosc",
+        overwrite: bool = True,
     ) -> None:
-        if int(width) <= 0 or int(height) <= 0:
-            raise ValueError(f"{path}: width and height must be positive, got {width}x{height}")
-        self.path = Path(path)
-        self.width = int(width)
-        self.height = int(height)
-        try:
-            self._meta = json.dumps(metadata or {})
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"{path}: metadata is not JSON-serialisable: {exc}") from exc
+        super().__init__(path, overwrite=overwrite)
+        self.width, self.height = check_geometry(str(path), width, height,
+                                                 "the writer's arguments")
+        self._meta = json_metadata(str(path), metadata)
         self._opts = _compression(codec)
-        self._stack: contextlib.ExitStack | None = None
-        self._file: h5py.File | None = None
         self.n_events = 0
         self.n_triggers = 0
         self._last_trigger_t: int | None = None
 
-    def __enter__(self) -> Hdf5Writer:
-        stack = contextlib.ExitStack()
-        tmp = stack.enter_context(atomic_path(self.path))
-        try:
-            f = h5py.File(tmp, "w")
-            f.attrs["width"] = np.int64(self.width)
-            f.attrs["height"] = np.int64(self.height)
-            f.attrs["time_unit"] = "us"
-            f.attrs["metadata"] = self._meta
-            f.attrs["format_version"] = np.int64(HDF5_FORMAT_VERSION)
-            for group, fields in (("events", _EVENT_FIELDS), ("triggers", _TRIGGER_FIELDS)):
-                g = f.create_group(group)
-                for key, dt in fields:
-                    g.create_dataset(key, shape=(0,), maxshape=(None,), dtype=dt,
-                                     chunks=(CHUNK_ELEMENTS,), **self._opts)
-        except BaseException as exc:
-            stack.__exit__(type(exc), exc, exc.__traceback__)
-            raise
-        self._stack, self._file = stack, f
-        return self
+    def _open(self, tmp: Path) -> h5py.File:
+        return h5py.File(tmp, "w")
+
+    def _start(self, f: h5py.File) -> None:
+        f.attrs["width"] = np.int64(self.width)
+        f.attrs["height"] = np.int64(self.height)
+        f.attrs["time_unit"] = "us"
+        f.attrs["metadata"] = self._meta
+        f.attrs["format_version"] = np.int64(HDF5_FORMAT_VERSION)
+        for group, fields in (("events", _EVENT_FIELDS), ("triggers", _TRIGGER_FIELDS)):
+            g = f.create_group(group)
+            for key, dt in fields:
+                g.create_dataset(key, shape=(0,), maxshape=(None,), dtype=dt,
+                                 chunks=(CHUNK_ELEMENTS,), **self._opts)
 
     def write(self, events: np.ndarray, triggers: np.ndarray | None = None) -> None:
         """Append events (``EVENT_DTYPE``, file order kept) and triggers (sorted, after
         the ones already written)."""
-        if self._file is None:
-            raise ValueError(f"{self.path}: the writer is not open (use it in a with block)")
+        f = self._file()
         validate_events(events, width=self.width, height=self.height, require_sorted=False)
         if events.size:
             n0, n1 = self.n_events, self.n_events + events.size
-            g = self._file["events"]
+            g = f["events"]
             for key, _ in _EVENT_FIELDS:
                 g[key].resize((n1,))
                 g[key][n0:n1] = events[key]
@@ -185,34 +186,26 @@ class Hdf5Writer:
                     f"last one written ({self._last_trigger_t} µs); triggers must be sorted"
                 )
             m0, m1 = self.n_triggers, self.n_triggers + triggers.size
-            g = self._file["triggers"]
+            g = f["triggers"]
             for key, _ in _TRIGGER_FIELDS:
                 g[key].resize((m1,))
                 g[key][m0:m1] = triggers[key]
             self.n_triggers = m1
             self._last_trigger_t = int(triggers["t"][-1])
 
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        f, stack = self._file, self._stack
-        self._file, self._stack = None, None
-        if f is not None:
-            f.close()
-        if stack is not None:
-            stack.__exit__(exc_type, exc, tb)
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        super().__exit__(exc_type, exc, tb)
         if exc_type is None:
             logger.info("%s: wrote %d events, %d triggers", self.path, self.n_events,
                         self.n_triggers)
 
 
-def save_hdf5(path: str | os.PathLike[str], recording: Recording, *, codec: str = "blosc") -> None:
+def save_hdf5(path: str | os.PathLike[str], recording: Recording, *, codec: str = "blosc",
+              overwrite: bool = True) -> None:
     """Write a whole recording to HDF5 (atomically); see the module's layout."""
     with Hdf5Writer(path, width=recording.width, height=recording.height,
-                    metadata=recording.metadata, codec=codec) as w:
+                    metadata=recording.metadata, codec=codec, overwrite=overwrite) as w:
         w.write(recording.events, recording.triggers)
 
 
@@ -238,6 +231,37 @@ def _attr_str(v: Any) -> str:
     return str(v)
 
 
+def _geometry_attrs(name: str, attrs: Any) -> tuple[int, int] | None:
+    """``(width, height)`` from the root attributes, None when both are absent;
+    ``ValueError`` naming the file when only one is there or one is not a whole number."""
+    if "width" not in attrs and "height" not in attrs:
+        return None
+    if "width" not in attrs or "height" not in attrs:
+        raise ValueError(f"{name}: attribute {'height' if 'width' in attrs else 'width'!r} "
+                         "missing; expected both width and height (pixels)")
+    out = []
+    for key in ("width", "height"):
+        v = attrs[key]
+        try:
+            if isinstance(v, (bytes, str, np.bytes_, np.str_)) or float(v) != int(v):
+                raise ValueError
+            out.append(int(v))
+        except (TypeError, ValueError):
+            raise ValueError(f"{name}: attribute {key}={_attr_str(v)!r} is not a whole number "
+                             "of pixels; expected e.g. width=346, height=260") from None
+    return check_geometry(name, out[0], out[1], "the file attributes")
+
+
+def _version(name: str, attrs: Any) -> int | None:
+    if "format_version" not in attrs:
+        return None
+    try:
+        return int(attrs["format_version"])
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: attribute format_version="
+                         f"{_attr_str(attrs['format_version'])!r} is not an integer") from None
+
+
 def _missing_dataset(name: str, f: h5py.File, want: str) -> ValueError:
     found = _datasets(f)
     group, key = want.split("/")
@@ -260,8 +284,6 @@ class _Reader:
 
     def __init__(self, path: Path, *, width: int | None, height: int | None,
                  time_unit: str | None) -> None:
-        from asynhdr.io import _resolve_geometry
-
         _ensure_plugins()
         self.name = str(path)
         try:
@@ -269,13 +291,12 @@ class _Reader:
         except Exception as exc:  # h5py raises OSError and others for non-HDF5 content
             raise ValueError(f"{self.name}: not a readable HDF5 file ({exc})") from exc
         try:
-            self._check(width, height, time_unit, _resolve_geometry)
+            self._check(width, height, time_unit)
         except BaseException:
             self.f.close()
             raise
 
-    def _check(self, width: int | None, height: int | None, time_unit: str | None,
-               resolve: Any) -> None:
+    def _check(self, width: int | None, height: int | None, time_unit: str | None) -> None:
         f, name = self.f, self.name
         self.ev: dict[str, h5py.Dataset] = {}
         for key, _ in _EVENT_FIELDS:
@@ -320,16 +341,8 @@ class _Reader:
         tdt = self.ev["t"].dtype
         if tdt.kind not in "iuf":
             raise ValueError(f"{name}: dataset 'events/t' has dtype {tdt}; expected int64 µs")
-        fg = None
-        if "width" in attrs or "height" in attrs:
-            try:
-                fg = (int(attrs["width"]), int(attrs["height"]))
-            except (KeyError, TypeError, ValueError) as exc:
-                raise ValueError(
-                    f"{name}: attributes width and height must both be integers "
-                    f"({exc}); expected e.g. width=346, height=260"
-                ) from exc
-        geo = resolve(name, fg, width, height, source="file attributes")
+        geo = resolve_geometry(name, _geometry_attrs(name, attrs), width, height,
+                               source="file attributes")
         if geo is None:
             raise ValueError(
                 f"{name}: attributes 'width' and 'height' missing; pass width=... and "
@@ -350,11 +363,8 @@ class _Reader:
             meta["time_unit_source"] = unit
             meta["time_conversion"] = f"{unit} -> integer µs (rounded to nearest)"
         self.metadata: dict[str, Any] = meta
-        if "format_version" in attrs:
-            try:
-                v = int(attrs["format_version"])
-            except (TypeError, ValueError) as exc:
-                raise ValueError(f"{name}: attribute format_version is not an integer") from exc
+        v = _version(name, attrs)
+        if v is not None:
             if v > HDF5_FORMAT_VERSION:
                 raise ValueError(f"{name}: format_version {v} is newer than this reader "
                                  f"({HDF5_FORMAT_VERSION}); update asynhdr")
@@ -376,7 +386,7 @@ class _Reader:
             if us.size and (np.abs(us) > 9.2e18).any():
                 raise ValueError(f"{self.name}: dataset {field!r} holds times beyond int64 µs")
             return np.rint(us).astype(np.int64)
-        t = _int_field(self.name, field, raw, np.int64)
+        t = int_field(self.name, field, raw, np.int64)
         if scale != 1:
             if t.size and (np.abs(t) > np.iinfo(np.int64).max // scale).any():
                 raise ValueError(f"{self.name}: dataset {field!r} holds times beyond int64 µs")
@@ -390,15 +400,15 @@ class _Reader:
             if key == "t":
                 cols[key] = self._time(raw, "events/t")
             else:
-                cols[key] = _int_field(self.name, f"events/{key}", raw, dt)
+                cols[key] = int_field(self.name, f"events/{key}", raw, dt)
         return make_events(cols["x"], cols["y"], cols["p"], cols["t"])
 
     def triggers(self) -> np.ndarray:
         if self.tr is None:
             return empty_triggers()
         t = self._time(self.tr["t"][:], "triggers/t")
-        rising = _int_field(self.name, "triggers/rising", self.tr["rising"][:], np.bool_)
-        ids = _int_field(self.name, "triggers/id", self.tr["id"][:], np.uint8)
+        rising = int_field(self.name, "triggers/rising", self.tr["rising"][:], np.bool_)
+        ids = int_field(self.name, "triggers/id", self.tr["id"][:], np.uint8)
         tr = make_triggers(t, rising, ids)
         try:
             validate_triggers(tr)
@@ -441,7 +451,7 @@ def load_hdf5(
     ``time_unit`` attribute. Raises ``FileNotFoundError`` for a missing file and
     ``ValueError`` naming the file, dataset or attribute and what was expected.
     """
-    p = _require_file(path)
+    p = require_file(path)
     with _guard(str(p)):
         r = _Reader(p, width=width, height=height, time_unit=time_unit)
         try:
@@ -449,7 +459,7 @@ def load_hdf5(
             triggers = r.triggers()
         finally:
             r.close()
-    return _recording(str(p), events=events, width=r.width, height=r.height,
+    return recording(str(p), events=events, width=r.width, height=r.height,
                       triggers=triggers, metadata=r.metadata)
 
 
@@ -467,7 +477,7 @@ def iter_hdf5(
     the first ``next``."""
     if int(chunk_events) < 1:
         raise ValueError(f"iter_hdf5: chunk_events must be >= 1, got {chunk_events}")
-    p = _require_file(path)
+    p = require_file(path)
     return _iter(p, int(chunk_events), width, height, time_unit)
 
 
@@ -490,7 +500,7 @@ def _iter(p: Path, chunk: int, width: int | None, height: int | None,
                     raise ValueError(f"{name}: events {a}..: {exc}") from exc
                 yield ev
 
-        yield from _pair_triggers(chunks(), triggers)
+        yield from pair_triggers(chunks(), triggers)
     finally:
         r.close()
 
@@ -510,7 +520,7 @@ def hdf5_info(path: str | os.PathLike[str]) -> dict[str, Any]:
     """Header facts of an HDF5 recording without reading its events: ``width``,
     ``height`` (None when absent), ``time_unit``, ``format_version``, ``events``,
     ``triggers`` (counts), ``datasets``, ``compression`` and ``metadata``."""
-    p = _require_file(path)
+    p = require_file(path)
     name = str(p)
     _ensure_plugins()
     with _guard(name):
@@ -529,11 +539,14 @@ def hdf5_info(path: str | os.PathLike[str]) -> dict[str, Any]:
                 except ValueError as exc:
                     raise ValueError(
                         f"{name}: attribute 'metadata' is not valid JSON: {exc}") from exc
+            geo = _geometry_attrs(name, a)
+            if not isinstance(meta, dict):
+                raise ValueError(f"{name}: attribute 'metadata' must be a JSON object")
             info = {
-                "width": int(a["width"]) if "width" in a else None,
-                "height": int(a["height"]) if "height" in a else None,
+                "width": geo[0] if geo else None,
+                "height": geo[1] if geo else None,
                 "time_unit": _attr_str(a["time_unit"]) if "time_unit" in a else None,
-                "format_version": int(a["format_version"]) if "format_version" in a else None,
+                "format_version": _version(name, a),
                 "events": int(t.shape[0]) if isinstance(t, h5py.Dataset) else None,
                 "triggers": int(tt.shape[0]) if isinstance(tt, h5py.Dataset) else 0,
                 "datasets": _datasets(f),
@@ -544,3 +557,51 @@ def hdf5_info(path: str | os.PathLike[str]) -> dict[str, Any]:
         with _guard(name), h5py.File(p, "r") as f:
             raise _missing_dataset(name, f, "events/t")
     return info
+
+
+HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
+"""The first bytes of every HDF5 file."""
+
+
+def _is_metavision(path: Path) -> bool:
+    """Whether an HDF5 file has Metavision's event layout (a ``CD`` group)."""
+    _ensure_plugins()
+    try:
+        with h5py.File(path, "r") as f:
+            return isinstance(f.get("CD"), h5py.Group)
+    except Exception:  # not readable: the reader says why
+        return False
+
+
+def _header(path: Path, opts: ReadOptions) -> Header:
+    info = hdf5_info(path)
+    geo = resolve_geometry(str(path), (info["width"], info["height"])
+                           if info["width"] is not None else None,
+                           opts.width, opts.height, source="file attributes")
+    with _guard(str(path)):
+        r = _Reader(path, width=opts.width, height=opts.height, time_unit=opts.time_unit)
+        try:
+            triggers = r.triggers()
+        finally:
+            r.close()
+    return Header(format="hdf5", width=geo[0] if geo else None, height=geo[1] if geo else None,
+                  geometry_source=geo[2] if geo else None, metadata=r.metadata, facts=info,
+                  triggers=triggers, events=info["events"])
+
+
+FORMAT = Format(
+    name="hdf5",
+    extensions=(".h5", ".hdf5"),
+    description="HDF5, asynhdr layout (events/x,y,t,p; triggers/t,rising,id; Blosc: "
+                "h5py needs hdf5plugin)",
+    sniff=lambda path, head: head.startswith(HDF5_MAGIC) and not _is_metavision(path),
+    header=_header,
+    chunks=lambda path, header, n, opts: iter_hdf5(path, chunk_events=n, width=opts.width,
+                                                   height=opts.height,
+                                                   time_unit=opts.time_unit),
+    read=lambda path, header, opts: load_hdf5(path, width=opts.width, height=opts.height,
+                                              time_unit=opts.time_unit),
+    writer=Hdf5Writer,
+    time_unit=True,
+)
+"""The asynhdr HDF5 record of the format registry (:mod:`asynhdr.io`)."""

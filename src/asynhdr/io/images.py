@@ -246,7 +246,7 @@ def read_radiance(path: PathLike) -> tuple[np.ndarray, dict[str, Any]]:
     n_nonpos = n_neg + int(np.count_nonzero(y == 0))
     if n_neg:
         y = np.where(neg, np.float32(0.0), y)
-        logger.warning(
+        logger.info(  # the caller reports it from info["clipped_negative"], once
             "%s: clipped %d negative luminance values to 0 (min %.3g)", p, n_neg,
             float(np.min(data[..., :3] if data.ndim == 3 else data)),
         )

@@ -24,16 +24,37 @@ from __future__ import annotations
 import json
 import logging
 import os
+import shutil
+import tempfile
 import zipfile
+from collections.abc import Iterator
+from pathlib import Path
+from types import TracebackType
 from typing import Any
 
 import numpy as np
 
-from asynhdr._atomic import atomic_path
-from asynhdr.events import Recording, make_events, make_triggers
-from asynhdr.io import _int_field, _recording, _require_file
+from asynhdr._atomic import TEMP_PREFIX, atomic_path, check_output
+from asynhdr.events import (
+    Recording,
+    make_events,
+    make_triggers,
+    validate_events,
+    validate_triggers,
+)
+from asynhdr.io._common import (
+    Format,
+    Header,
+    ReadOptions,
+    check_geometry,
+    int_field,
+    json_metadata,
+    require_file,
+)
+from asynhdr.io._common import recording as _recording
+from asynhdr.source import pair_triggers
 
-__all__ = ["NPZ_FORMAT_VERSION", "load_npz", "npz_info", "save_npz"]
+__all__ = ["FORMAT", "NPZ_FORMAT_VERSION", "NpzWriter", "load_npz", "npz_info", "save_npz"]
 
 logger = logging.getLogger(__name__)
 
@@ -51,36 +72,99 @@ _TRIGGER_FIELDS = (("triggers_t", np.int64), ("triggers_rising", np.bool_),
 _REQUIRED = (*(k for k, _ in _EVENT_FIELDS + _TRIGGER_FIELDS), "width", "height", "metadata")
 
 
-def save_npz(path: str | os.PathLike[str], recording: Recording) -> None:
+class NpzWriter:
+    """Stream a recording into an ``.npz`` archive of the layout above, atomically.
+
+    Each field is spooled into a temporary folder beside ``path`` (in the folder's
+    temporary name space, see :mod:`asynhdr._atomic`) as batches come, and zipped when
+    the ``with`` block ends without an exception: memory stays flat in the recording's
+    size. ``metadata`` must be JSON-serialisable.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], *, width: int, height: int,
+                 metadata: dict[str, Any] | None = None, overwrite: bool = True) -> None:
+        self.path = Path(path)
+        self.width, self.height = check_geometry(str(path), width, height,
+                                                 "the writer's arguments")
+        self._meta = json_metadata(str(path), metadata)
+        self._overwrite = overwrite
+        self._dir: Path | None = None
+        self._files: dict[str, Any] = {}
+        self._counts = {"events": 0, "triggers": 0}
+        self._last_trigger_t: int | None = None
+
+    def __enter__(self) -> NpzWriter:
+        check_output(self.path, overwrite=self._overwrite)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._dir = Path(tempfile.mkdtemp(prefix=f"{TEMP_PREFIX}{os.getpid()}-",
+                                          suffix=f"-{self.path.name}", dir=self.path.parent))
+        self._files = {k: open(self._dir / k, "wb")
+                       for k, _ in (*_EVENT_FIELDS, *_TRIGGER_FIELDS)}
+        return self
+
+    def write(self, events: np.ndarray, triggers: np.ndarray | None = None) -> None:
+        """Append events (``EVENT_DTYPE``, file order) and triggers (sorted, after the
+        ones already written)."""
+        if self._dir is None:
+            raise ValueError(f"{self.path}: the writer is not open (use it in a with block)")
+        validate_events(events, width=self.width, height=self.height, require_sorted=False,
+                        name=f"{self.path}: events")
+        for key, dt in _EVENT_FIELDS:
+            self._files[key].write(np.ascontiguousarray(events[key[7:]], dtype=dt).data)
+        self._counts["events"] += int(events.size)
+        if triggers is not None and triggers.size:
+            validate_triggers(triggers, name=f"{self.path}: triggers")
+            if self._last_trigger_t is not None and int(triggers["t"][0]) < self._last_trigger_t:
+                raise ValueError(f"{self.path}: triggers must be written in time order")
+            self._last_trigger_t = int(triggers["t"][-1])
+            for key, tdt in _TRIGGER_FIELDS:
+                self._files[key].write(np.ascontiguousarray(triggers[key[9:]], dtype=tdt).data)
+            self._counts["triggers"] += int(triggers.size)
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        for f in self._files.values():
+            f.close()
+        try:
+            if exc_type is None and self._dir is not None:
+                self._zip(self._dir)
+        finally:
+            if self._dir is not None:
+                shutil.rmtree(self._dir, ignore_errors=True)
+            self._dir = None
+
+    def _zip(self, spool: Path) -> None:
+        scalars = {"width": np.int64(self.width), "height": np.int64(self.height),
+                   "metadata": np.array(self._meta),
+                   "format_version": np.int64(NPZ_FORMAT_VERSION)}
+        with atomic_path(self.path, overwrite=self._overwrite) as tmp, zipfile.ZipFile(
+            tmp, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=COMPRESS_LEVEL,
+            allowZip64=True
+        ) as zf:
+            for key, fdt in (*_EVENT_FIELDS, *_TRIGGER_FIELDS):
+                n = self._counts["events" if key.startswith("events") else "triggers"]
+                with zf.open(f"{key}.npy", "w", force_zip64=True) as fh, \
+                        open(spool / key, "rb") as src:
+                    np.lib.format.write_array_header_1_0(
+                        fh, {"descr": np.lib.format.dtype_to_descr(np.dtype(fdt)),
+                             "fortran_order": False, "shape": (n,)})
+                    shutil.copyfileobj(src, fh, 1 << 22)
+            for key, value in scalars.items():
+                with zf.open(f"{key}.npy", "w", force_zip64=True) as fh:
+                    np.lib.format.write_array(fh, np.asanyarray(value), allow_pickle=False)
+        logger.info("%s: wrote %d events, %d triggers", self.path, self._counts["events"],
+                    self._counts["triggers"])
+
+
+def save_npz(path: str | os.PathLike[str], recording: Recording, *,
+             overwrite: bool = True) -> None:
     """Write ``recording`` to a compressed ``.npz`` archive, atomically.
 
     Raises ``ValueError`` when the metadata is not JSON-serialisable.
     """
-    try:
-        meta = json.dumps(recording.metadata, allow_nan=True)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"{path}: metadata is not JSON-serialisable: {exc}") from exc
-    ev, tr = recording.events, recording.triggers
-    arrays: dict[str, Any] = {
-        "events_x": np.ascontiguousarray(ev["x"]),
-        "events_y": np.ascontiguousarray(ev["y"]),
-        "events_t": np.ascontiguousarray(ev["t"]),
-        "events_p": np.ascontiguousarray(ev["p"]),
-        "triggers_t": np.ascontiguousarray(tr["t"]),
-        "triggers_rising": np.ascontiguousarray(tr["rising"]),
-        "triggers_id": np.ascontiguousarray(tr["id"]),
-        "width": np.int64(recording.width),
-        "height": np.int64(recording.height),
-        "metadata": np.array(meta),
-        "format_version": np.int64(NPZ_FORMAT_VERSION),
-    }
-    with atomic_path(path) as tmp, zipfile.ZipFile(
-        tmp, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=COMPRESS_LEVEL, allowZip64=True
-    ) as zf:
-        for key, value in arrays.items():
-            with zf.open(f"{key}.npy", "w", force_zip64=True) as fh:
-                np.lib.format.write_array(fh, np.asanyarray(value), allow_pickle=False)
-    logger.info("%s: wrote %d events, %d triggers", path, ev.size, tr.size)
+    with NpzWriter(path, width=recording.width, height=recording.height,
+                   metadata=recording.metadata, overwrite=overwrite) as w:
+        w.write(recording.events, recording.triggers)
 
 
 def _scalar_int(name: str, field: str, a: np.ndarray) -> int:
@@ -100,7 +184,7 @@ def load_npz(path: str | os.PathLike[str]) -> Recording:
     was expected), fields of different lengths, bad metadata JSON, polarity not ±1, a
     pixel outside the sensor.
     """
-    p = _require_file(path)
+    p = require_file(path)
     name = str(p)
     try:
         with open(p, "rb") as fh, np.load(fh, allow_pickle=False) as z:
@@ -130,8 +214,8 @@ def load_npz(path: str | os.PathLike[str]) -> Recording:
                 f"{name}: format_version {v} is newer than this reader "
                 f"({NPZ_FORMAT_VERSION}); update asynhdr"
             )
-    cols = {k: _int_field(name, k, raw[k], dt) for k, dt in _EVENT_FIELDS}
-    tcols = {k: _int_field(name, k, raw[k], dt) for k, dt in _TRIGGER_FIELDS}
+    cols = {k: int_field(name, k, raw[k], dt) for k, dt in _EVENT_FIELDS}
+    tcols = {k: int_field(name, k, raw[k], dt) for k, dt in _TRIGGER_FIELDS}
     n = {k: v.size for k, v in cols.items()}
     if len(set(n.values())) > 1:
         raise ValueError(f"{name}: event fields have different lengths {n}; expected one length")
@@ -140,8 +224,9 @@ def load_npz(path: str | os.PathLike[str]) -> Recording:
         raise ValueError(
             f"{name}: trigger fields have different lengths {m}; expected one length"
         )
-    width = _scalar_int(name, "width", raw["width"])
-    height = _scalar_int(name, "height", raw["height"])
+    width, height = check_geometry(name, _scalar_int(name, "width", raw["width"]),
+                                   _scalar_int(name, "height", raw["height"]),
+                                   "fields 'width' and 'height'")
     meta_arr = raw["metadata"]
     if meta_arr.shape != () or meta_arr.dtype.kind != "U":
         raise ValueError(
@@ -166,7 +251,7 @@ def npz_info(path: str | os.PathLike[str]) -> dict[str, Any]:
     """Header facts of an asynhdr ``.npz`` without reading its events: ``width``,
     ``height``, ``events`` and ``triggers`` (counts, from the array headers),
     ``format_version`` and ``metadata``. Errors as in :func:`load_npz`."""
-    p = _require_file(path)
+    p = require_file(path)
     name = str(p)
     try:
         with zipfile.ZipFile(p) as zf:
@@ -194,8 +279,9 @@ def npz_info(path: str | os.PathLike[str]) -> dict[str, Any]:
                     f"{name}: field {missing[0]!r} missing; found "
                     f"{sorted(m[:-4] for m in members)}; expected {list(_REQUIRED)}"
                 )
-            width = _scalar_int(name, "width", small("width"))
-            height = _scalar_int(name, "height", small("height"))
+            width, height = check_geometry(name, _scalar_int(name, "width", small("width")),
+                                           _scalar_int(name, "height", small("height")),
+                                           "fields 'width' and 'height'")
             meta_arr = small("metadata")
             version = (_scalar_int(name, "format_version", small("format_version"))
                        if "format_version.npy" in members else None)
@@ -213,5 +299,35 @@ def npz_info(path: str | os.PathLike[str]) -> dict[str, Any]:
         metadata = json.loads(str(meta_arr))
     except ValueError as exc:
         raise ValueError(f"{name}: field 'metadata' is not valid JSON: {exc}") from exc
+    if not isinstance(metadata, dict):
+        raise ValueError(f"{name}: field 'metadata' must be a JSON object")
     return {"width": width, "height": height, "events": n_events, "triggers": n_triggers,
             "format_version": version, "metadata": metadata}
+
+
+def _header(path: Path, opts: ReadOptions) -> Header:
+    info = npz_info(path)
+    return Header(format="npz", width=info["width"], height=info["height"],
+                  geometry_source="file", metadata=info["metadata"], facts=info,
+                  events=info["events"])
+
+
+def _chunks(path: Path, header: Header, read_chunk: int,
+            opts: ReadOptions) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    rec = load_npz(path)  # a compressed member cannot be read in slices
+    ev = rec.events
+    return pair_triggers([ev[i : i + read_chunk] for i in range(0, ev.size, read_chunk)],
+                         rec.triggers)
+
+
+FORMAT = Format(
+    name="npz",
+    extensions=(".npz",),
+    description="NumPy archive, asynhdr layout (events_x, ..., metadata)",
+    sniff=lambda path, head: head.startswith(b"PK\x03\x04"),
+    header=_header,
+    chunks=_chunks,
+    read=lambda path, header, opts: load_npz(path),
+    writer=NpzWriter,
+)
+"""The ``.npz`` record of the format registry (:mod:`asynhdr.io`)."""

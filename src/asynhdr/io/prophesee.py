@@ -1,4 +1,5 @@
-"""Prophesee ``.raw`` files: EVT 2.0, EVT 2.1 and EVT 3.0 read, EVT 3.0 write, with triggers.
+"""Prophesee ``.raw`` files: EVT 2.0, EVT 2.1 and EVT 3.0 read, EVT 2.0 and 3.0 written,
+with triggers.
 
 A ``.raw`` file is a text header (lines starting with ``%``, closed by ``% end``
 when present) followed by the event stream:
@@ -33,27 +34,29 @@ The sensor geometry comes from the header (``% geometry WxH``, or ``width`` and
 the sensor the header names (``% sensor_generation``, ``% generation``,
 ``% sensor_name``, a Prophesee ``% system_ID``, ``% plugin_name``).
 
-:class:`Evt3Writer` and :func:`write_raw_evt3` write EVT 3.0 (events and
-triggers interleaved in time), atomically.
+:class:`RawWriter` writes EVT 3.0 or EVT 2.0 (events and triggers interleaved in
+time), atomically, with the recording's metadata (the rig and sensor of a simulated
+recording) as JSON on a ``% asynhdr_metadata`` header line, which :func:`read_raw` reads
+back. A payload that is not sensor data (a long run of one word, EVT 2.0 words under an
+EVT 2.1 header) raises ``ValueError``; a stream cut mid-word or inside a vector group is
+read up to the cut, with a warning.
 """
 
 from __future__ import annotations
 
-import contextlib
 import itertools
+import json
 import logging
 import os
 import threading
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from types import TracebackType
 from typing import Any, BinaryIO
 
 import numpy as np
 
 from asynhdr import _pool
-from asynhdr._atomic import atomic_path
 from asynhdr._recycle import Recycler
 from asynhdr.events import (
     EVENT_DTYPE,
@@ -64,10 +67,21 @@ from asynhdr.events import (
     validate_triggers,
 )
 from asynhdr.io import _evt_kernels as _k
+from asynhdr.io._common import (
+    FileWriter,
+    Format,
+    Header,
+    ReadOptions,
+    json_metadata,
+    require_file,
+)
 
 __all__ = [
+    "FORMAT",
+    "METADATA_KEY",
     "SUPPORTED_RAW_FORMATS",
     "Evt3Writer",
+    "RawWriter",
     "iter_raw",
     "raw_info",
     "read_raw",
@@ -93,6 +107,10 @@ _SPARE_EVENTS = {"evt2": 1, "evt21": 32, "evt3": 32}
 # Format names in '% format NAME;...' and values of '% evt ...'.
 _FORMAT_NAMES = {"EVT2": "evt2", "EVT21": "evt21", "EVT3": "evt3"}
 _LEGACY_EVT_VALUES = {"2.0": "evt2", "2.1": "evt21", "3.0": "evt3"}
+
+METADATA_KEY = "asynhdr_metadata"
+"""Header key of the line in which asynhdr's writers store the recording's metadata as
+JSON (OpenEB and other readers ignore header keys they do not know)."""
 
 _MAX_HEADER_BYTES = 16 << 20
 _MAX_COORDINATE = 2048  # 11-bit addresses in every EVT format
@@ -392,16 +410,29 @@ def _evt21_legacy(fields: dict[str, str], options: dict[str, str]) -> bool:
     return False
 
 
+def _stored_metadata(fields: dict[str, str], name: str) -> dict[str, Any] | None:
+    """The recording's metadata from a ``% asynhdr_metadata {json}`` header line (what
+    asynhdr's writers store: the rig and sensor of a simulated recording), or None."""
+    text = _field(fields, METADATA_KEY)
+    if text is None:
+        return None
+    try:
+        meta = json.loads(text)
+    except ValueError as exc:
+        raise ValueError(f"{name}: header '% {METADATA_KEY}' is not valid JSON: {exc}") from None
+    if not isinstance(meta, dict):
+        raise ValueError(f"{name}: header '% {METADATA_KEY}' must hold a JSON object")
+    return meta
+
+
 class _RawInfo:
     """Everything the header says that decoding needs."""
 
     def __init__(self, path: str | os.PathLike[str], width: int | None, height: int | None):
-        self.path = path
+        self.path = require_file(path)
         self.name = str(path)
         try:
             f = open(path, "rb", buffering=0)
-        except FileNotFoundError:
-            raise FileNotFoundError(f"{self.name}: no such file") from None
         except OSError as exc:
             raise ValueError(f"{self.name}: cannot open: {exc.strerror or exc}") from exc
         with f:
@@ -417,6 +448,9 @@ class _RawInfo:
         payload = self.file_bytes - self.header_bytes
         self.n_words = payload // self.word_bytes
         self.trailing_bytes = payload - self.n_words * self.word_bytes
+        stored = _stored_metadata(self.fields, self.name)
+        self.metadata: dict[str, Any] = stored if stored is not None else {
+            "format": self.format, "source": self.name, "header": dict(self.fields)}
 
     def as_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {
@@ -558,6 +592,97 @@ def _warn_trailing(info: _RawInfo) -> None:
             info.trailing_bytes,
             info.word_bytes,
         )
+
+
+# A run of this many identical payload words is not sensor data (padding, or a damaged
+# file): real streams repeat at most a TIME_HIGH word a few times (11 in the shared
+# recordings), which is left out of the check. Runs are looked for among every 64th word
+# and checked word by word where the samples agree.
+_RUN_LIMIT_WORDS = 4096
+_RUN_STRIDE = 64
+
+
+def _constant_run(w: np.ndarray, high_type: int) -> tuple[int, int, int] | None:
+    """``(first word, length, value)`` of a run of at least ``_RUN_LIMIT_WORDS`` identical
+    words other than time-high words (type ``high_type`` in the top 4 bits), or None."""
+    s = w[::_RUN_STRIDE]
+    need = _RUN_LIMIT_WORDS // _RUN_STRIDE - 1
+    if s.size <= need:
+        return None
+    bounds = np.concatenate(([0], np.flatnonzero(s[1:] != s[:-1]) + 1, [s.size]))
+    top = 8 * w.dtype.itemsize - 4
+    for k in np.flatnonzero(np.diff(bounds) >= need):
+        v = s[bounds[k]]
+        if int(v) >> top == high_type:
+            continue
+        lo = max(0, (int(bounds[k]) - 1) * _RUN_STRIDE + 1)
+        hi = min(w.size, int(bounds[k + 1]) * _RUN_STRIDE)
+        same = np.concatenate(([0], (w[lo:hi] == v).view(np.int8), [0]))
+        d = np.diff(same)
+        a, b = np.flatnonzero(d == 1), np.flatnonzero(d == -1)
+        j = int(np.argmax(b - a))
+        if b[j] - a[j] >= _RUN_LIMIT_WORDS:
+            return lo + int(a[j]), int(b[j] - a[j]), int(v)
+    return None
+
+
+def _check_payload(info: _RawInfo, words: np.ndarray, words_before: int) -> None:
+    """``ValueError`` naming the byte offset when a block of the payload (``words``, the
+    kernel's view, ``words_before`` words into the payload) is not sensor data: a long run
+    of one word, or, in the first block of an EVT 2.1 file, 32-bit EVT 2.0 words."""
+    w = words.view("<u8") if info.format == "evt21" else words
+    run = _constant_run(w, 0x8)
+    if run is not None:
+        at, n, v = run
+        offset = info.header_bytes + (words_before + at) * info.word_bytes
+        word = f"0x{v:0{2 * info.word_bytes}X}"
+        raise ValueError(
+            f"{info.name}: {n} identical {info.word_bytes}-byte words {word} from byte "
+            f"offset {offset}: not {_FORMAT_TITLES[info.format]} sensor data (padding or a "
+            "damaged file)")
+    if info.format == "evt21" and words_before == 0:
+        _check_evt21_framing(info, words[: 1 << 17])
+
+
+def _check_evt21_framing(info: _RawInfo, halves: np.ndarray) -> None:
+    """An EVT 2.1 word carries its type and time in one 32-bit half and a validity mask in
+    the other. EVT 2.0 data read as EVT 2.1 shows time-high words (type 0x8, the 28 bits
+    of a time that the other time-high words share) in both halves; a genuine mask with
+    its top 4 bits 0x8 has no reason to hold such a time."""
+    n = halves.size // 2 * 2
+    head, mask = (halves[0:n:2], halves[1:n:2]) if info.legacy else (halves[1:n:2], halves[0:n:2])
+    th_head = head[(head >> 28) == 0x8] & 0x0FFFFFFF
+    th_mask = mask[(mask >> 28) == 0x8] & 0x0FFFFFFF
+    if th_head.size < 2 or th_mask.size < 4:
+        return
+    near = (th_mask >= int(th_head.min()) - 2) & (th_mask <= int(th_head.max()) + 2)
+    if int(near.sum()) >= max(4, th_mask.size // 2):
+        raise ValueError(
+            f"{info.name}: the header says EVT 2.1 but the payload holds 32-bit EVT 2.0 "
+            f"words: {int(near.sum())} time-high words sit where EVT 2.1 keeps its validity "
+            f"masks (and {th_head.size} where it keeps its time-high words); the header's "
+            "format line is wrong (EVT 2.0 data is read with '% evt 2.0')")
+
+
+def _check_end(info: _RawInfo, words: np.ndarray) -> None:
+    """Warn when an EVT 3.0 stream ends inside a vector group: after a VECT_BASE_X word,
+    sensors and asynhdr's writer send vector words for whole groups of 32 columns
+    (VECT_12, VECT_12, VECT_8), so a stream whose last vector words cover another number
+    of columns was cut."""
+    if info.format != "evt3" or words.size == 0:
+        return
+    typ = words[-64:].astype(np.int64) >> 12
+    k, cols = typ.size, 0
+    while k > 0 and typ[k - 1] in (0x4, 0x5):
+        cols += 12 if typ[k - 1] == 0x4 else 8
+        k -= 1
+    if k == 0 or typ[k - 1] != 0x3 or (cols and cols % 32 == 0):
+        return
+    offset = info.header_bytes + (info.n_words - typ.size + k - 1) * info.word_bytes
+    logger.warning(
+        "%s: the stream ends inside a vector group (%d of 32 columns after the VECT_BASE_X "
+        "word at byte offset %d): the file was cut; the events before the cut are kept",
+        info.name, cols % 32, offset)
 
 
 def _trim(arr: np.ndarray, n: int) -> np.ndarray:
@@ -945,6 +1070,8 @@ def read_raw(
             f"{info.n_words * info.word_bytes} payload bytes)"
         )
     words = _kernel_view(info, raw)
+    _check_payload(info, words, 0)
+    _check_end(info, words)
     state = _new_state(info.format)
     starts = _evt3_split(words.shape[0]) if info.format == "evt3" else None
     if starts is not None:
@@ -1009,7 +1136,7 @@ def read_raw(
         n_ev,
         triggers.shape[0],
     )
-    metadata = {"format": info.format, "source": str(path), "header": dict(info.fields)}
+    metadata = info.metadata
     # The kernels check every pixel against the geometry and write polarity as +-1.
     return Recording.from_checked(
         events=events,
@@ -1089,6 +1216,9 @@ def _iter_chunks(
                 filled += got
             payload_left -= want
             words = _kernel_view(info, block_array[:want])
+            _check_payload(info, words, words_before)
+            if payload_left == 0:
+                _check_end(info, words)
             starts = _evt3_split(words.shape[0]) if info.format == "evt3" else None
             if starts is not None:
                 # Decode the block in parallel into scratch (kept for the next block or
@@ -1160,35 +1290,44 @@ def _iter_chunks(
 
 
 # --------------------------------------------------------------------------------------
-# Writing EVT 3.0
+# Writing EVT 2.0 and EVT 3.0
 # --------------------------------------------------------------------------------------
 
-# Latest first time the writer accepts: a stream that starts later begins at
-# time-high 0 and steps up one word per 4096 µs (about 8 MB at this limit).
-_MAX_FIRST_TIME_US = 1 << 34
-_RESERVED_HEADER_KEYS = {"evt", "format", "geometry", "end"}
+# Latest time the writers accept: EVT 2.0 holds 34-bit times; an EVT 3.0 stream that
+# starts later than 0 begins at time-high 0 and steps up one word per 4096 µs (about
+# 8 MB at this limit).
+_MAX_TIME_US = (1 << 34) - 1
+_RESERVED_HEADER_KEYS = {"evt", "format", "geometry", "end", METADATA_KEY}
+_WRITERS = {"3.0": ("evt3", "EVT3", _k.encode_evt3, _k.ENCODER_STATE_SIZE, np.uint16, 15),
+            "2.0": ("evt2", "EVT2", _k.encode_evt2, _k.ENCODER2_STATE_SIZE, np.uint32, 31)}
 
 
-class Evt3Writer:
-    """Stream events and triggers into an EVT 3.0 ``.raw`` file, atomically.
+class RawWriter(FileWriter):
+    """Stream events and triggers into an EVT 3.0 (default) or EVT 2.0 ``.raw`` file,
+    atomically.
 
     Use as a context manager; each :meth:`write` takes a time-sorted batch that
     starts no earlier than the previous batch ended. Events and triggers are
     interleaved by time in the stream (a trigger before events of the same µs).
     The file appears under its name only when the ``with`` block ends without an
-    exception. Like a sensor, the stream carries a time-high word for every
-    4096 µs between items (so any EVT 3.0 decoder follows its 24-bit wraps): a gap
-    costs 2 bytes per 4.096 ms, and the first time must be below 2**34 µs.
+    exception. Like a sensor, an EVT 3.0 stream carries a time-high word for every
+    4096 µs between items, each followed by a TIME_LOW word before the next item (so
+    any EVT 3.0 decoder follows its 24-bit wraps and never keeps stale low bits).
+    Times must lie in ``[0, 2**34)`` µs.
 
-    The header holds ``% evt 3.0``, ``% format EVT3;height=H;width=W``,
-    ``% geometry WxH``, one ``% key value`` line per ``header_extra`` item, and
-    ``% end``.
+    The header holds ``% evt 3.0`` (or ``2.0``), ``% format EVT3;height=H;width=W``,
+    ``% geometry WxH``, one ``% key value`` line per ``header_extra`` item, the
+    recording's ``metadata`` as JSON on a ``% asynhdr_metadata`` line (readers that do
+    not know the key, OpenEB's among them, skip it), and ``% end``.
 
     Parameters
     ----------
     path : destination ``.raw`` file.
     width, height : sensor geometry in pixels (1..2048).
+    metadata : JSON-serialisable dict (the rig and sensor of a simulated recording).
     header_extra : more header fields; keys without whitespace, values on one line.
+    evt : ``"3.0"`` or ``"2.0"``.
+    overwrite : replace an existing file (else ``FileExistsError``).
 
     Attributes ``events_written``, ``triggers_written`` and ``bytes_written`` (file
     size so far, header included) count what has been written.
@@ -1200,30 +1339,40 @@ class Evt3Writer:
         *,
         width: int,
         height: int,
+        metadata: dict[str, Any] | None = None,
         header_extra: dict[str, Any] | None = None,
+        evt: str = "3.0",
+        overwrite: bool = True,
     ) -> None:
-        self.path = Path(path)
+        if evt not in _WRITERS:
+            raise ValueError(f"{path}: evt must be one of {sorted(_WRITERS)}, got {evt!r}")
+        super().__init__(path, overwrite=overwrite)
         self.width = int(width)
         self.height = int(height)
+        self.evt = evt
+        self._fmt, self._fmt_name, encode, state_size, word, self._max_id = _WRITERS[evt]
+        self._encode: Any = encode
         _check_geometry(self.width, self.height, str(path), "the writer's arguments")
-        self._header = self._make_header(header_extra or {})
-        self._stack: contextlib.ExitStack | None = None
-        self._file: BinaryIO | None = None
-        self._state = np.zeros(_k.ENCODER_STATE_SIZE, dtype=np.int64)
-        self._state[_k.E_Y] = -1
+        extra = dict(header_extra or {})
+        if metadata is not None:
+            extra[METADATA_KEY] = json_metadata(str(path), metadata)
+        self._header = self._make_header(extra, header_extra or {})
+        self._state = np.zeros(state_size, dtype=np.int64)
+        if evt == "3.0":
+            self._state[_k.E_Y] = -1
         self._last_t: int | None = None
-        self._buf = np.empty(1 << 20, dtype=np.uint16)
+        self._buf = np.empty(1 << 20, dtype=word)
         self.events_written = 0
         self.triggers_written = 0
         self.bytes_written = 0
 
-    def _make_header(self, extra: dict[str, Any]) -> bytes:
+    def _make_header(self, lines_from: dict[str, Any], user: dict[str, Any]) -> bytes:
         lines = [
-            "% evt 3.0",
-            f"% format EVT3;height={self.height};width={self.width}",
+            f"% evt {self.evt}",
+            f"% format {self._fmt_name};height={self.height};width={self.width}",
             f"% geometry {self.width}x{self.height}",
         ]
-        for key, value in extra.items():
+        for key, value in lines_from.items():
             k = str(key)
             v = str(value)
             if not k or any(c.isspace() for c in k) or k.startswith("%"):
@@ -1231,7 +1380,7 @@ class Evt3Writer:
                     f"{self.path}: header_extra key {k!r} must be non-empty, without "
                     "whitespace or '%'"
                 )
-            if k.lower() in _RESERVED_HEADER_KEYS:
+            if k in user and k.lower() in _RESERVED_HEADER_KEYS:
                 raise ValueError(
                     f"{self.path}: header_extra key {k!r} is written by the writer itself"
                 )
@@ -1241,37 +1390,18 @@ class Evt3Writer:
         lines.append("% end")
         return ("\n".join(lines) + "\n").encode("utf-8")
 
-    def __enter__(self) -> Evt3Writer:
-        stack = contextlib.ExitStack()
-        try:
-            tmp = stack.enter_context(atomic_path(self.path))
-            self._file = stack.enter_context(open(tmp, "wb"))
-            self._file.write(self._header)
-            self.bytes_written = len(self._header)
-        except BaseException:
-            stack.close()
-            raise
-        self._stack = stack
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        stack, self._stack, self._file = self._stack, None, None
-        if stack is not None:
-            stack.__exit__(exc_type, exc, tb)
+    def _start(self, f: BinaryIO) -> None:
+        f.write(self._header)
+        self.bytes_written = len(self._header)
 
     def write(self, events: np.ndarray, triggers: np.ndarray | None = None) -> None:
         """Append a batch of events (``EVENT_DTYPE``) and triggers (``TRIGGER_DTYPE``).
 
-        Both must be sorted by time, inside the geometry, with times >= 0 µs, trigger
-        channels 0..15, and no earlier than the last time already written.
+        Both must be sorted by time, inside the geometry, with times in
+        ``[0, 2**34)`` µs, trigger channels 0..15 (EVT 3.0) or 0..31 (EVT 2.0), and no
+        earlier than the last time already written.
         """
-        if self._file is None:
-            raise ValueError(f"{self.path}: Evt3Writer.write called outside its 'with' block")
+        out = self._file()
         name = str(self.path)
         events = validate_events(
             events, width=self.width, height=self.height, require_sorted=True,
@@ -1280,38 +1410,39 @@ class Evt3Writer:
         if triggers is None:
             triggers = empty_triggers()
         triggers = validate_triggers(triggers, name=f"{name}: triggers")
-        if triggers.size and int(triggers["id"].max()) > 15:
+        title = _FORMAT_TITLES[self._fmt]
+        if triggers.size and int(triggers["id"].max()) > self._max_id:
             raise ValueError(
-                f"{name}: trigger channel {int(triggers['id'].max())} does not fit EVT 3.0 "
-                "(channels 0..15)"
+                f"{name}: trigger channel {int(triggers['id'].max())} does not fit {title} "
+                f"(channels 0..{self._max_id})"
             )
         firsts = [int(a["t"][0]) for a in (events, triggers) if a.size]
         if not firsts:
             return
         t_first = min(firsts)
-        if t_first < 0:
-            raise ValueError(f"{name}: times must be >= 0 µs, got {t_first} µs")
-        if self._last_t is None and t_first > _MAX_FIRST_TIME_US:
+        t_last = max(int(a["t"][-1]) for a in (events, triggers) if a.size)
+        if t_first < 0 or t_last > _MAX_TIME_US:
             raise ValueError(
-                f"{name}: first time {t_first} µs is beyond {_MAX_FIRST_TIME_US} µs; "
-                "subtract a start time before writing"
+                f"{name}: times {t_first}..{t_last} µs are outside what {title} holds "
+                f"(0..{_MAX_TIME_US} µs, 4.8 hours); subtract a start time before writing"
             )
         if self._last_t is not None and t_first < self._last_t:
             raise ValueError(
                 f"{name}: batch starts at t={t_first} µs, before the last time already "
                 f"written ({self._last_t} µs); batches must follow each other in time"
             )
-        self._last_t = max(int(a["t"][-1]) for a in (events, triggers) if a.size)
+        self._last_t = t_last
         events = np.ascontiguousarray(events)
         triggers = np.ascontiguousarray(triggers)
         i = j = 0
         while True:
-            status, i, j, n = _k.encode_evt3(
-                events, triggers, i, j, self._state, self.width, self._buf
-            )
-            status, i, j, n = int(status), int(i), int(j), int(n)
-            self._file.write(self._buf[:n].data)
-            self.bytes_written += 2 * n
+            if self._fmt == "evt3":
+                res = self._encode(events, triggers, i, j, self._state, self.width, self._buf)
+            else:
+                res = self._encode(events, triggers, i, j, self._state, self._buf)
+            status, i, j, n = (int(v) for v in res)
+            out.write(self._buf[:n].data)
+            self.bytes_written += self._buf.itemsize * n
             if status == _k.STATUS_DONE:
                 break
             if status != _k.STATUS_FULL:  # time stepped back: validated above
@@ -1320,11 +1451,63 @@ class Evt3Writer:
         self.triggers_written += int(triggers.size)
 
 
+Evt3Writer = RawWriter
+"""The EVT 3.0 writer (:class:`RawWriter` with its default ``evt="3.0"``)."""
+
+
 def write_raw_evt3(path: str | os.PathLike[str], recording: Recording) -> None:
-    """Write a recording (events and triggers sorted by time) as an EVT 3.0 ``.raw`` file.
+    """Write a recording (events and triggers sorted by time) as an EVT 3.0 ``.raw`` file,
+    with its metadata in the header.
 
     Atomic: the file appears under ``path`` only once complete. Events out of time
     order raise ``ValueError``; sort them first (:meth:`Recording.sorted`).
     """
-    with Evt3Writer(path, width=recording.width, height=recording.height) as writer:
+    with RawWriter(path, width=recording.width, height=recording.height,
+                   metadata=recording.metadata) as writer:
         writer.write(recording.events, recording.triggers)
+
+
+# --------------------------------------------------------------------------------------
+# The format record
+# --------------------------------------------------------------------------------------
+
+
+def _sensor_text(fields: dict[str, str]) -> str | None:
+    keys = ("camera_integrator_name", "integrator", "plugin_name", "sensor_name",
+            "sensor_generation", "generation", "serial_number")
+    parts = [f"{k}={fields[k]}" for k in keys if fields.get(k)]
+    return ", ".join(parts) or None
+
+
+def _header(path: Path, opts: ReadOptions) -> Header:
+    info = _RawInfo(path, opts.width, opts.height)
+    _warn_trailing(info)
+    return Header(format=info.format, width=info.width, height=info.height,
+                  geometry_source=info.geometry_source, metadata=info.metadata,
+                  facts=info.as_dict(), sensor=_sensor_text(info.fields), private=info)
+
+
+def _chunks(path: Path, header: Header, read_chunk: int,
+            opts: ReadOptions) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    return _iter_chunks(header.private, read_chunk, _DEFAULT_BLOCK_BYTES)
+
+
+def _read(path: Path, header: Header, opts: ReadOptions) -> Recording:
+    return read_raw(path, width=opts.width, height=opts.height)
+
+
+def _sniff(path: Path, head: bytes) -> bool:
+    return head.startswith(b"%") or not head
+
+
+FORMAT = Format(
+    name="raw",
+    extensions=(".raw",),
+    description="Prophesee RAW, EVT 2.0 / 2.1 / 3.0 (Metavision, OpenEB)",
+    sniff=_sniff,
+    header=_header,
+    chunks=_chunks,
+    read=_read,
+    writer=RawWriter,
+)
+"""The ``.raw`` record of the format registry (:mod:`asynhdr.io`)."""

@@ -30,23 +30,38 @@ import os
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import TracebackType
 from typing import Any, TextIO
 
 import numpy as np
 
-from asynhdr._atomic import atomic_path
 from asynhdr.events import (
     EVENT_DTYPE,
     Recording,
     empty_events,
     empty_triggers,
     make_triggers,
+    validate_events,
+    validate_triggers,
 )
-from asynhdr.io import _recording, _require_file, _resolve_geometry
+from asynhdr.io._common import (
+    MAX_SIDE_PX,
+    FileWriter,
+    Format,
+    Header,
+    ReadOptions,
+    check_geometry,
+    json_metadata,
+    recording,
+    require_file,
+    resolve_geometry,
+)
 
 __all__ = [
     "DEFAULT_CHUNK_LINES",
+    "FORMAT",
     "TEXT_TIME_UNITS",
+    "TextWriter",
     "iter_text",
     "read_text",
     "save_text",
@@ -117,8 +132,9 @@ def _directive(st: _State, lineno: int, text: str) -> None:
         except ValueError:
             raise _fail(st, lineno, f"comment '{key}: {value}' is not a whole number of "
                         "pixels") from None
-        if v <= 0:
-            raise _fail(st, lineno, f"comment '{key}: {value}' must be positive")
+        if not 1 <= v <= MAX_SIDE_PX:
+            raise _fail(st, lineno, f"comment '{key}: {value}' is outside 1..{MAX_SIDE_PX} "
+                        "pixels")
         setattr(st, key, v)
     elif key == "metadata":
         try:
@@ -374,7 +390,7 @@ def iter_text(
         raise ValueError(f"time_unit must be one of {TEXT_TIME_UNITS}, got {time_unit!r}")
     if int(chunk_lines) < 1:
         raise ValueError(f"iter_text: chunk_lines must be >= 1, got {chunk_lines}")
-    p = _require_file(path)
+    p = require_file(path)
     st = _State(name=str(p), time_unit=time_unit)
     return _iter(p, st, int(chunk_lines))
 
@@ -429,7 +445,7 @@ def text_info(path: str | os.PathLike[str]) -> dict[str, Any]:
     """Header facts of a text recording (no event is parsed): ``width``, ``height``
     (None when the comments give none), ``columns`` (from a header line, else None),
     ``time_unit`` (from the header, else None) and ``metadata``."""
-    p = _require_file(path)
+    p = require_file(path)
     st = _preamble(p)
     return {"width": st.width, "height": st.height,
             "columns": list(st.columns) if st.columns else None,
@@ -450,7 +466,7 @@ def read_text(
     """
     if time_unit not in TEXT_TIME_UNITS:
         raise ValueError(f"time_unit must be one of {TEXT_TIME_UNITS}, got {time_unit!r}")
-    p = _require_file(path)
+    p = require_file(path)
     st = _State(name=str(p), time_unit=time_unit)
     evs: list[np.ndarray] = []
     trs: list[np.ndarray] = []
@@ -463,11 +479,12 @@ def read_text(
     file_geo = (st.width, st.height) if st.width is not None and st.height is not None else None
     if (st.width is None) != (st.height is None):
         raise ValueError(f"{p}: the comments give only one of width and height")
-    geo = _resolve_geometry(str(p), file_geo, width, height, source="header comments")
+    geo = resolve_geometry(str(p), file_geo, width, height, source="header comments")
     if geo is None:
         if events.size == 0:
             raise ValueError(f"{p}: no events and no geometry; pass width=... and height=...")
-        w, h = int(events["x"].max()) + 1, int(events["y"].max()) + 1
+        w, h = check_geometry(str(p), int(events["x"].max()) + 1, int(events["y"].max()) + 1,
+                              "the largest x and y")
         meta["geometry_inferred"] = True
         logger.warning("%s: no geometry in the file; using %dx%d from the largest x and y",
                        p, w, h)
@@ -476,8 +493,64 @@ def read_text(
     if st.unit is not None and st.unit != "us":
         meta["time_unit_source"] = st.unit
         meta["time_unit_detected"] = st.detected
-    return _recording(str(p), events=events, width=w, height=h, triggers=triggers,
+    return recording(str(p), events=events, width=w, height=h, triggers=triggers,
                       metadata=meta)
+
+
+class TextWriter(FileWriter):
+    """Stream a recording into a text file, atomically: comment lines with the geometry
+    and the metadata (JSON), a header line ``t x y p``, then one event a line (``t`` in
+    integer µs, ``p`` 1 ON / 0 OFF) and, among them, a ``# trigger: t rising id`` line
+    for each trigger, before the events of its batch."""
+
+    def __init__(self, path: str | os.PathLike[str], *, width: int, height: int,
+                 metadata: dict[str, Any] | None = None, delimiter: str | None = None,
+                 header: bool = True, overwrite: bool = True) -> None:
+        super().__init__(path, overwrite=overwrite)
+        d = delimiter if delimiter is not None else (
+            "," if self.path.suffix.lower() == ".csv" else " ")
+        if d not in (" ", ",", "\t"):
+            raise ValueError(f"{path}: delimiter must be ' ', ',' or a tab, got {d!r}")
+        self.width, self.height = check_geometry(str(path), width, height,
+                                                 "the writer's arguments")
+        self._meta = json_metadata(str(path), metadata)
+        self._d = d
+        self._header = header
+        self.events_written = 0
+
+    def _open(self, tmp: Path) -> TextIO:
+        return open(tmp, "w", encoding="utf-8", newline="\n")
+
+    def _start(self, f: TextIO) -> None:
+        f.write("# asynhdr events: t x y p, one a line; t in µs, p 1 = ON, 0 = OFF\n")
+        f.write(f"# width: {self.width}\n# height: {self.height}\n")
+        f.write(f"# metadata: {self._meta}\n")
+        if self._header:
+            f.write(self._d.join(_FIELDS) + "\n")
+
+    def write(self, events: np.ndarray, triggers: np.ndarray | None = None) -> None:
+        """Append events (``EVENT_DTYPE``, file order) and triggers."""
+        f, d = self._file(), self._d
+        validate_events(events, width=self.width, height=self.height, require_sorted=False,
+                        name=f"{self.path}: events")
+        if triggers is not None and triggers.size:
+            validate_triggers(triggers, name=f"{self.path}: triggers")
+            for t, r, i in zip(triggers["t"].tolist(), triggers["rising"].tolist(),
+                               triggers["id"].tolist(), strict=True):
+                f.write(f"# trigger: {t} {int(r)} {i}\n")
+        for a in range(0, events.size, 1 << 18):
+            c = events[a : a + (1 << 18)]
+            pp = (c["p"] > 0).astype(np.int8)
+            rows = zip(c["t"].tolist(), c["x"].tolist(), c["y"].tolist(), pp.tolist(),
+                       strict=True)
+            f.write("".join(f"{t}{d}{x}{d}{y}{d}{q}\n" for t, x, y, q in rows))
+        self.events_written += int(events.size)
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        super().__exit__(exc_type, exc, tb)
+        if exc_type is None:
+            logger.info("%s: wrote %d events as text", self.path, self.events_written)
 
 
 def save_text(
@@ -486,32 +559,36 @@ def save_text(
     *,
     delimiter: str = " ",
     header: bool = True,
-    chunk_events: int = 1 << 18,
+    overwrite: bool = True,
 ) -> None:
-    """Write a recording as text, atomically: comment lines with geometry, metadata
-    (JSON) and triggers, a header line ``t x y p`` (when ``header``), then one event a
-    line with ``t`` in integer µs and ``p`` as 1 (ON) / 0 (OFF)."""
-    if delimiter not in (" ", ",", "\t"):
-        raise ValueError(f"save_text: delimiter must be ' ', ',' or a tab, got {delimiter!r}")
-    try:
-        meta = json.dumps(recording.metadata)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"{path}: metadata is not JSON-serialisable: {exc}") from exc
-    d = delimiter
-    ev, tr = recording.events, recording.triggers
-    with atomic_path(path) as tmp, open(tmp, "w", encoding="utf-8", newline="\n") as f:
-        f.write("# asynhdr events: t x y p, one a line; t in µs, p 1 = ON, 0 = OFF\n")
-        f.write(f"# width: {recording.width}\n# height: {recording.height}\n")
-        f.write(f"# metadata: {meta}\n")
-        for t, r, i in zip(tr["t"].tolist(), tr["rising"].tolist(), tr["id"].tolist(),
-                           strict=True):
-            f.write(f"# trigger: {t} {int(r)} {i}\n")
-        if header:
-            f.write(d.join(_FIELDS) + "\n")
-        for a in range(0, ev.size, chunk_events):
-            c = ev[a : a + chunk_events]
-            pp = (c["p"] > 0).astype(np.int8)
-            rows = zip(c["t"].tolist(), c["x"].tolist(), c["y"].tolist(), pp.tolist(),
-                       strict=True)
-            f.write("".join(f"{t}{d}{x}{d}{y}{d}{q}\n" for t, x, y, q in rows))
-    logger.info("%s: wrote %d events as text", path, ev.size)
+    """Write a recording as text, atomically (see :class:`TextWriter`); the triggers come
+    first, as comment lines."""
+    with TextWriter(path, width=recording.width, height=recording.height,
+                    metadata=recording.metadata, delimiter=delimiter, header=header,
+                    overwrite=overwrite) as w:
+        w.write(recording.events, recording.triggers)
+
+
+def _header_of(path: Path, opts: ReadOptions) -> Header:
+    info = text_info(path)
+    if (info["width"] is None) != (info["height"] is None):
+        raise ValueError(f"{path}: the comments give only one of width and height")
+    return Header(format="text", width=info["width"], height=info["height"],
+                  geometry_source="header comments" if info["width"] else None,
+                  metadata=info["metadata"], facts=info)
+
+
+FORMAT = Format(
+    name="text",
+    extensions=(".txt", ".csv"),
+    description="text, one event a line: t x y p (or t,x,y,p)",
+    sniff=lambda path, head: b"\x00" not in head,
+    header=_header_of,
+    chunks=lambda path, header, n, opts: iter_text(path, chunk_lines=n,
+                                                   time_unit=opts.time_unit or "auto"),
+    read=lambda path, header, opts: read_text(path, width=opts.width, height=opts.height,
+                                              time_unit=opts.time_unit or "auto"),
+    writer=TextWriter,
+    time_unit=True,
+)
+"""The text record of the format registry (:mod:`asynhdr.io`)."""

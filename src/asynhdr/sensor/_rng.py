@@ -46,8 +46,14 @@ def hash_normal(seed, a, b, c):
 @nb.njit(cache=True, inline="always")
 def hash_normal2(seed, a, b, c):
     """Two independent standard normals (both Box-Muller outputs) for one counter."""
-    u1 = hash_uniform(seed, a, b, 2 * c)
-    u2 = hash_uniform(seed, a, b, 2 * c + 1)
+    # the same values as hash_uniform(seed, a, b, 2c) and (.., 2c + 1), the mixes of
+    # (seed, a, b) done once
+    z = _mix(np.uint64(seed) + _GOLD * np.uint64(a + 1))
+    z = _mix(z + _GOLD * np.uint64(b + 1))
+    z1 = _mix(z + _GOLD * np.uint64(2 * c + 1))
+    z2 = _mix(z + _GOLD * np.uint64(2 * c + 2))
+    u1 = (np.float64(z1 >> np.uint64(11)) + 0.5) * (1.0 / 9007199254740992.0)
+    u2 = (np.float64(z2 >> np.uint64(11)) + 0.5) * (1.0 / 9007199254740992.0)
     r = np.sqrt(-2.0 * np.log(u1))
     ang = 2.0 * np.pi * u2
     return r * np.cos(ang), r * np.sin(ang)

@@ -211,9 +211,10 @@ def _first(rows, ia, ib, wa, wb, lo, hi, thr, up, v_prev):
     """First knot ``j`` in ``[lo, hi]`` where ``V_j >= thr`` (``up``; ``V`` non-decreasing
     there) or ``V_j <= thr`` (non-increasing); ``hi + 1`` when none.
 
-    ``v_prev`` is ``V`` just before ``lo``. Secant steps from the local slope bracket the
-    level (the signal is smooth, so they land close), then a short scan or a bisection
-    finds the knot: few evaluations and few mispredicted branches.
+    ``v_prev`` is ``V`` just before ``lo``. Three secant steps from the local slope
+    bracket the level (the signal is smooth, so they land close; each step moves one end
+    of the bracket, chosen without a branch), a gallop extends the bracket in the rare
+    case they did not reach the level, and a branch-free bisection finds the knot.
     """
     v_lo = _val(rows, ia, ib, wa, wb, lo)
     if _reaches(v_lo, thr, up):
@@ -224,32 +225,22 @@ def _first(rows, ia, ib, wa, wb, lo, hi, thr, up, v_prev):
     va = v_lo
     slope = v_lo - v_prev
     b = hi + 1
-    for _ in range(4):
-        if (slope > 0.0) if up else (slope < 0.0):
-            ahead = (thr - va) / slope
-            g = a + 1 if ahead < 1.0 else (a + np.int64(ahead) if ahead < b - a else b - 1)
-        else:
-            g = min(a + 2, b - 1)
-        if g > hi:
-            g = hi
-        if g <= a:
+    for _ in range(3):
+        room = b - 1 - a
+        if room < 1:
             break
+        ahead = (thr - va) / slope if ((slope > 0.0) if up else (slope < 0.0)) else 2.0
+        step = 1 if ahead < 1.0 else (room if ahead >= room else np.int64(ahead))
+        g = a + step
         e = _val(rows, ia, ib, wa, wb, g)
-        if _reaches(e, thr, up):
-            b = g
-            if b - a <= 1:
-                return b
-            # the crossing is in (a, b]: one more secant step inside
-            slope = (e - va) / (b - a)
-        else:
-            slope = (e - va) / (g - a)
-            a = g
-            va = e
-            if a == hi:
-                return hi + 1
-            if b - a <= 1:
-                return b
+        hit = _reaches(e, thr, up)
+        slope = (e - va) / step
+        b = g if hit else b
+        va = va if hit else e
+        a = a if hit else g
     if b > hi:
+        if a == hi:
+            return hi + 1
         # not bracketed yet: gallop forward from a
         step = 1
         while True:
@@ -299,6 +290,14 @@ def _at(rows, ia, ib, wa, wb, s, k, t):
         return va
     vb = _val(rows, ia, ib, wa, wb, k + 1)
     return va + (vb - va) * ((t - s[k]) / (s[k + 1] - s[k]))
+
+
+@nb.njit(cache=True, inline="always")
+def _levels(r_lvl, con, coff, log_domain):
+    """The ON and OFF levels for reference ``r_lvl``, in the signal's domain."""
+    if log_domain:
+        return r_lvl + con, r_lvl - coff
+    return math.exp(r_lvl + con), math.exp(r_lvl - coff)
 
 
 # ----------------------------------------------------------------------------- one cycle
@@ -367,12 +366,7 @@ def _fire(pix, order, s, idx, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pi
             if pend:
                 r_lvl = (v if log_domain else math.log(v)) + sigma * pz
                 pend = False
-            if log_domain:
-                thi = r_lvl + con
-                tlo = r_lvl - coff
-            else:
-                thi = math.exp(r_lvl + con)
-                tlo = math.exp(r_lvl - coff)
+            thi, tlo = _levels(r_lvl, con, coff, log_domain)
             while True:
                 chi = thi - _EPS if log_domain else thi * (1.0 - _EPS)
                 clo = tlo + _EPS if log_domain else tlo * (1.0 + _EPS)
@@ -486,12 +480,7 @@ def _fire(pix, order, s, idx, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pi
                         k = _locate(s, idx, runs[r, 0], runs[r, 1] - 1, t)
                         v = _at(rows, ra, rb, xa, xb, s, k, t)
                         r_lvl = (v if log_domain else math.log(v)) + sigma * zr
-                        if log_domain:
-                            thi = r_lvl + con
-                            tlo = r_lvl - coff
-                        else:
-                            thi = math.exp(r_lvl + con)
-                            tlo = math.exp(r_lvl - coff)
+                        thi, tlo = _levels(r_lvl, con, coff, log_domain)
                     free = t
                     continue
                 t_end = tf + lat_us + refr_us
@@ -505,12 +494,7 @@ def _fire(pix, order, s, idx, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pi
                 k = _locate(s, idx, runs[r, 0], runs[r, 1] - 1, t)
                 v = _at(rows, ra, rb, xa, xb, s, k, t)
                 r_lvl = (v if log_domain else math.log(v)) + sigma * zr
-                if log_domain:
-                    thi = r_lvl + con
-                    tlo = r_lvl - coff
-                else:
-                    thi = math.exp(r_lvl + con)
-                    tlo = math.exp(r_lvl - coff)
+                thi, tlo = _levels(r_lvl, con, coff, log_domain)
             while q < qe:
                 if nz_t[q] < free:
                     lost += 1

@@ -1,0 +1,175 @@
+"""``asynhdr reconstruct`` and ``asynhdr calibrate``: files in, images or a c-map out."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import typer
+
+from asynhdr.cli._app import app
+from asynhdr.cli.core import (
+    IMAGE_FORMATS,
+    _parse_formats,
+    check_outputs,
+    console,
+    fail,
+    progress_bar,
+)
+from asynhdr.reconstruct import DEFAULT_K, DEFAULT_METHOD, METHODS
+from asynhdr.sensor.params import SensorParams
+
+__all__ = ["calibrate", "reconstruct"]
+
+
+def _open(path: Path, width: int | None = None, height: int | None = None) -> Any:
+    from asynhdr.io import open_source
+
+    try:
+        return open_source(path, width=width, height=height)
+    except (ValueError, OSError) as exc:
+        fail(str(exc))
+
+
+@app.command()
+def reconstruct(
+    recording: Path = typer.Argument(..., help="Event recording (any supported format)."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder."),
+    method: str = typer.Option(DEFAULT_METHOD, help=" | ".join(METHODS) + "."),
+    k: float = typer.Option(DEFAULT_K, help="k of the exponential weighting."),
+    cmap: Path | None = typer.Option(None, help="c-map from 'asynhdr calibrate'."),
+    threshold_on: float | None = typer.Option(
+        None, help="ON contrast threshold (default: the recording's sensor, else "
+        f"{SensorParams.threshold_on:g})."),
+    threshold_off: float | None = typer.Option(
+        None, help="OFF contrast threshold (default: the recording's sensor, else "
+        f"{SensorParams.threshold_off:g})."),
+    window_us: float | None = typer.Option(None, help="Integration window after each cycle "
+                                           "start (default: the ramp, else the period)."),
+    period_us: float | None = typer.Option(None, help="Modulation period in µs, when known "
+                                           "(needed with fewer than two trigger edges)."),
+    single: bool = typer.Option(False, "--single", help="Treat the whole recording as one "
+                                "cycle (a single ramp, e.g. a temporal-mapping capture)."),
+    skip_warmup: bool = typer.Option(False, "--skip-warmup", help="Leave out a warm-up "
+                                     "cycle (the first, when the modulation starts with the "
+                                     "recording)."),
+    width: int | None = typer.Option(None, help="Sensor width, for files without geometry."),
+    height: int | None = typer.Option(None, help="Sensor height, for files without geometry."),
+    formats: str = typer.Option("exr,png", help=f"Comma-separated, from {IMAGE_FORMATS}."),
+    tonemap: str = typer.Option("log", help="PNG tone mapping: log | reinhard | linear."),
+    demosaic: str = typer.Option("malvar", help="Colour recordings (a CFA in the metadata): "
+                                 "malvar | bilinear | none (write the raw mosaic)."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace existing images."),
+    rig: Path | None = typer.Option(None, "--rig", help="Rig file (TOML, from 'asynhdr "
+                                    "design' or 'simulate --rig-out'): the rig and sensor "
+                                    "of a real recording, for ml, invert and ttfe."),
+    calibration: Path | None = typer.Option(None, "--calibration", help="Calibration file "
+                                            "(.npz, asynhdr.calib) with per-pixel ON and OFF "
+                                            "thresholds, for ml."),
+) -> None:
+    """Reconstruct one HDR image per modulation cycle.
+
+    Cycles come from the trigger edges, else (simulated recordings) the rig, else the
+    event-rate envelope; when none are found nothing is written. The file is read one
+    cycle at a time (memory flat in file size) after the passes that find its cycles.
+    """
+    from asynhdr.cli._colour import DEMOSAIC_CHOICES, write_colour
+    from asynhdr.io.cmap import load_cmap
+    from asynhdr.io.images import write_image
+    from asynhdr.reconstruct import reconstruct_cycles
+    from asynhdr.segment import NoCyclesError
+
+    fmts = _parse_formats(formats)
+    if demosaic not in DEMOSAIC_CHOICES:
+        fail(f"--demosaic: expected one of {DEMOSAIC_CHOICES}, got {demosaic!r}")
+    if method not in METHODS:
+        fail(f"--method: unknown method {method!r}; choose from {list(METHODS)}")
+    if out.exists() and not out.is_dir():
+        fail(f"{out}: exists and is not a folder; --out names the folder for the images")
+    stem = f"{recording.stem}_{method}_"
+    existing = sorted(out.glob(f"{stem}[0-9][0-9][0-9][0-9].*")) if out.is_dir() else []
+    check_outputs([*existing, out / f"{stem}0000.{fmts[0]}"], overwrite=overwrite)
+    src = _open(recording, width, height)
+    m = METHODS[method]
+    meta: dict[str, Any] = {"source": str(recording), "method": method, "k": k,
+                            "cmap": str(cmap) if cmap else None, "radiometric": m.radiometric}
+    from asynhdr.cli.ml_support import MlOutputs
+
+    mlo = MlOutputs.open(rig, calibration, method=method, formats=fmts, fail=fail)
+    if rig is not None:
+        meta["rig"] = str(rig)
+    opts = mlo.options
+    if opts is not None and single:  # one ramp from rest: the pixels start on their reference
+        opts["settled_start"] = True
+    try:
+        cm = load_cmap(cmap) if cmap is not None else None
+        with progress_bar() as update:
+            plan = reconstruct_cycles(src, method=method, k=k, cmap=cm, window_us=window_us,
+                                      period_us=period_us, single=single,
+                                      threshold_on=threshold_on, threshold_off=threshold_off,
+                                      progress=update, rig=mlo.rig, ml_options=opts)
+            unit = mlo.unit or plan.metadata.get("radiance_unit", "relative")
+            warm = plan.windows.warmup
+            colour = bool(plan.metadata.get("cfa")) and demosaic != "none"
+            written = 0
+            for i, _, img in plan:
+                if skip_warmup and i < warm:
+                    continue
+                info = dict(meta, cycle=i, unit=unit, warmup=i < warm)
+                if mlo.active:
+                    mlo.write(out / f"{stem}{i:04d}", img, info, tonemap=tonemap)
+                elif colour:
+                    write_colour(out / f"{stem}{i:04d}", img, plan.metadata, fmts,
+                                 method=demosaic, tonemap=tonemap, extra=info)
+                else:
+                    for f in fmts:
+                        write_image(out / f"{stem}{i:04d}.{f}", img,
+                                    metadata=info if f in ("exr", "tif") else None,
+                                    tonemap=tonemap)
+                written += 1
+    except NoCyclesError as exc:
+        hint = "--single" if period_us is not None else "--period-us or --single"
+        fail(f"{recording}: no cycles found ({exc.reason}); pass {hint}; nothing written")
+    except (ValueError, OSError) as exc:
+        fail(str(exc))
+    note = ""
+    if warm and not skip_warmup:
+        note = (" (cycle 0 is a warm-up cycle: the modulation starts with the recording, so "
+                "its pixels start from another state and its image differs; --skip-warmup "
+                "leaves it out)")
+    if colour:
+        note += (f"; colour recording (CFA {plan.metadata['cfa']}): demosaiced ({demosaic}) "
+                 "to RGB")
+    console.print(f"{written} image{'s' if written != 1 else ''} ({method}) from "
+                  f"{plan.n_events:,} events, one cycle at a time -> {out}/{note}")
+
+
+@app.command()
+def calibrate(
+    flats: list[Path] = typer.Argument(..., help="Flat-field recordings of one sensor."),
+    out: Path = typer.Option(..., "--out", "-o", help="c-map to write (.npz)."),
+    k: float = typer.Option(DEFAULT_K, help="k of the exponential weighting."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing c-map."),
+) -> None:
+    """Estimate the c-map (per-pixel threshold correction) from flat-field recordings."""
+    from asynhdr.calibrate import cmap_key, estimate_cmap
+    from asynhdr.io.cmap import save_cmap
+    from asynhdr.segment import NoCyclesError
+
+    if out.suffix.lower() != ".npz":
+        fail(f"{out}: a c-map is written as .npz")
+    check_outputs([out], overwrite=overwrite)
+    sources = [_open(f) for f in flats]
+    try:
+        with progress_bar() as update:
+            cmap = estimate_cmap(sources, k=k, progress=update)
+        cmap.metadata["sources"] = [str(f) for f in flats]
+        save_cmap(out, cmap, overwrite=overwrite)
+    except NoCyclesError as exc:
+        fail(f"no cycles found ({exc.reason}); flat fields must be modulated recordings")
+    except (ValueError, OSError) as exc:
+        fail(str(exc))
+    ex = cmap.maps[cmap_key("exp", k=k)]
+    console.print(f"c-map from {len(flats)} captures ({cmap.metadata['n_cycles']} cycles): "
+                  f"{', '.join(cmap.maps)}; exp map spread (std) {float(np.std(ex)):.4f} -> {out}")
