@@ -194,3 +194,44 @@ def test_ml_fits_thresholds_jointly_where_the_events_identify_them() -> None:
     err_off = np.abs(res.c_off[-1, 1] - c_off[1])
     assert np.median(err_on) < 0.01 < np.median(np.abs(c_on[0] - 0.2))
     assert np.median(err_off) < 0.01
+
+
+def test_cli_calibrate_thresholds_then_reconstruct_with_calibration(tmp_path: Path) -> None:
+    # simulate --rig-out, flat fields above and below L_const, calibrate-thresholds, then
+    # reconstruct --calibration: the file holds per-pixel maps and ml uses them
+    from typer.testing import CliRunner
+
+    from asynhdr.cli import _register, app
+    from asynhdr.io.images import read_image
+
+    _register()
+    runner = CliRunner()
+    rig = tmp_path / "rig.toml"
+    lc = default_rig("imx636").l_const
+    flats = []
+    for i, r in enumerate((lc * 30, lc / 30)):
+        f = tmp_path / f"flat{i}.h5"
+        res = runner.invoke(app, ["simulate", f"flat:{r}", "-o", str(f), "--width", "12",
+                                  "--height", "8", "--preset", "imx636", "--n-cycles", "3",
+                                  "--seed", str(i), "--rig-out", str(rig), "--overwrite"])
+        assert res.exit_code == 0, res.output
+        flats.append(str(f))
+    cal = tmp_path / "cal.npz"
+    res = runner.invoke(app, ["calibrate-thresholds", *flats, "--radiance", str(lc * 30),
+                              "--radiance", str(lc / 30), "--rig", str(rig), "-o", str(cal)])
+    assert res.exit_code == 0, res.output
+    back = read_calibration(cal)
+    c_on, c_off = draw_thresholds(get_preset("imx636"), width=12, height=8,
+                                  rng=np.random.default_rng(1))
+    assert back.c_on is not None and back.c_off is not None
+    assert float(np.sqrt(np.mean((back.c_on - c_on) ** 2))) < 0.01
+    assert float(np.sqrt(np.mean((back.c_off - c_off) ** 2))) < 0.01
+    scene = tmp_path / "scene.h5"
+    res = runner.invoke(app, ["simulate", "flat:2000", "-o", str(scene), "--width", "12",
+                              "--height", "8", "--preset", "imx636", "--n-cycles", "2"])
+    assert res.exit_code == 0, res.output
+    res = runner.invoke(app, ["reconstruct", str(scene), "-o", str(tmp_path / "img"),
+                              "--method", "ml", "--calibration", str(cal), "--formats", "exr"])
+    assert res.exit_code == 0, res.output
+    img = read_image(tmp_path / "img" / "scene_ml_0001.exr")
+    assert abs(float(np.nanmedian(img)) / 2000.0 - 1.0) < 0.03
