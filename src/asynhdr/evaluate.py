@@ -230,7 +230,10 @@ def evaluate_scene(
     for m, img in images.items():
         c = compare_images(img, truth, mask=valid)
         metrics[m] = c
-        scaled[m] = (img * c.scale).astype(np.float32)
+        # a saturated pixel (the largest float32) times a scale > 1 would overflow
+        with np.errstate(over="ignore"):
+            scaled[m] = np.minimum(np.asarray(img, np.float64) * c.scale,
+                                   np.finfo(np.float32).max).astype(np.float32)
     fc = cam.frame_time_s
     capture_s = {m: period_s for m in methods}
     capture_s[f"mef-{n_exposures}"] = float(sum(max(t, fc) for t in full))
