@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-BENCHES = ("bench_sim", "bench_decode", "bench_io")
+BENCHES = ("bench_sim", "bench_decode", "bench_io", "bench_ml")
 
 
 def _data_dir() -> Path | None:

@@ -50,13 +50,14 @@ __all__ = [
     "DEFAULT_SCENE_METHODS",
     "SceneEvaluation",
     "calibrate_for_scenes",
+    "calibrate_thresholds_for_scenes",
     "evaluate_scene",
     "rig_mid_radiance",
 ]
 
 logger = logging.getLogger(__name__)
 
-DEFAULT_SCENE_METHODS: tuple[str, ...] = ("raw", "linear", "exp", "ttfe", "invert")
+DEFAULT_SCENE_METHODS: tuple[str, ...] = ("raw", "linear", "exp", "ttfe", "invert", "ml")
 """Event methods evaluated on scenes (all with the c-map)."""
 
 AUTO_EXPOSURE_FRACTION = 0.18
@@ -69,8 +70,15 @@ Progress = Callable[[str, int, int], None]
 def rig_mid_radiance(rig: Rig) -> float:
     """Middle of the rig's working range, ``L_const sqrt(CR_1)`` (lux): the geometric
     centre between ``L_const`` and ``L_const CR_1`` (see
-    :func:`asynhdr.scene.exposure_scale`)."""
-    return rig.l_const * math.sqrt(rig.contrast_ratio_1)
+    :func:`asynhdr.scene.exposure_scale`). A rig with its own waveforms (a designed one)
+    works from ``L_const min T2 / max T1`` to ``L_const max T2 / min T1``: the geometric
+    centre of those."""
+    if rig.t1 is None:
+        return rig.l_const * math.sqrt(rig.contrast_ratio_1)
+    w1, w2 = rig.waveforms()
+    lo = rig.l_const * float(w2.values.min()) / float(w1.values.max())
+    hi = rig.l_const * float(w2.values.max()) / float(w1.values.min())
+    return math.sqrt(lo * hi)
 
 
 @dataclass(frozen=True, eq=False)
@@ -114,6 +122,28 @@ def calibrate_for_scenes(*, width: int, height: int, sensor: SensorParams | str,
     return cmap
 
 
+def calibrate_thresholds_for_scenes(*, width: int, height: int, sensor: SensorParams | str,
+                                    rig: Rig | None = None, sensor_seed: int = 1,
+                                    seed: int = 300, engine: str = "exact"
+                                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-pixel ON and OFF thresholds for ``ml`` (:func:`asynhdr.calib.thresholds_from_flats`)
+    from flat fields 30x above and below ``L_const``, two of each, three cycles each."""
+    from asynhdr.calib import thresholds_from_flats
+
+    rig = rig or Rig()
+    sensor = get_preset(sensor) if isinstance(sensor, str) else sensor
+    rads = [rig.l_const * 30.0, rig.l_const / 30.0] * 2
+    seeds = np.random.SeedSequence(seed).spawn(len(rads))
+    caps = [simulate(flat_field(width=width, height=height, radiance=r, unit="lux"), rig=rig,
+                     sensor=sensor, n_cycles=3, rng=np.random.default_rng(sq),
+                     sensor_seed=sensor_seed, engine=engine) for r, sq in zip(rads, seeds,
+                                                                              strict=True)]
+    cal = thresholds_from_flats(caps, radiance=rads, rig=rig, sensor=sensor)
+    thr = cal.threshold_maps()
+    assert thr is not None
+    return thr
+
+
 def evaluate_scene(
     radiance_map: npt.ArrayLike,
     *,
@@ -124,6 +154,7 @@ def evaluate_scene(
     rig: Rig | None = None,
     scale: float | None = None,
     cmap: CMap | None = None,
+    ml_thresholds: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
     n_cycles: int = 2,
     methods: Sequence[str] = DEFAULT_SCENE_METHODS,
     k: float = DEFAULT_K,
@@ -135,7 +166,9 @@ def evaluate_scene(
     progress: Progress | None = None,
 ) -> SceneEvaluation:
     """Evaluate one scene (see the module's text). ``cmap``: from
-    :func:`calibrate_for_scenes` for the same sensor (made here when not given)."""
+    :func:`calibrate_for_scenes` for the same sensor (made here when not given).
+    ``ml_thresholds``: per-pixel ``(c_on, c_off, sigma)`` for ``ml``
+    (:func:`calibrate_thresholds_for_scenes`); without them ``ml`` uses the c-map."""
     rig = rig or Rig()
     sensor = get_preset(sensor) if isinstance(sensor, str) else sensor
     cam = get_frame_camera(frame_camera) if isinstance(frame_camera, str) else frame_camera
@@ -165,7 +198,11 @@ def evaluate_scene(
                    progress=lambda _s, d, t: tick(f"{name}: simulate", d, t))
     images: dict[str, np.ndarray] = {}
     for i, m in enumerate(methods):
-        images[m] = finite_image(reconstruct(rec, method=m, k=k, cmap=cmap)[-1])[0]
+        if m == "ml" and ml_thresholds is not None:  # per-pixel ON and OFF thresholds
+            img = reconstruct(rec, method=m, ml_options={"thresholds": ml_thresholds})[-1]
+        else:
+            img = reconstruct(rec, method=m, k=k, cmap=cmap)[-1]
+        images[m] = finite_image(img)[0]
         tick(f"{name}: reconstruct", i + 1, len(methods))
     n_events = int(rec.events.size)
     del rec
@@ -193,7 +230,10 @@ def evaluate_scene(
     for m, img in images.items():
         c = compare_images(img, truth, mask=valid)
         metrics[m] = c
-        scaled[m] = (img * c.scale).astype(np.float32)
+        # a saturated pixel (the largest float32) times a scale > 1 would overflow
+        with np.errstate(over="ignore"):
+            scaled[m] = np.minimum(np.asarray(img, np.float64) * c.scale,
+                                   np.finfo(np.float32).max).astype(np.float32)
     fc = cam.frame_time_s
     capture_s = {m: period_s for m in methods}
     capture_s[f"mef-{n_exposures}"] = float(sum(max(t, fc) for t in full))

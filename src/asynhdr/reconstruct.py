@@ -50,6 +50,12 @@ per event; the image is the geometric mean of these estimates over the cycle's
 events. It is linear in radiance (up to noise) and uses the c-map's per-pixel
 thresholds when given. Pixels with no usable event are 0.
 
+Maximum likelihood (``ml``, :mod:`asynhdr.ml`): each pixel's events inverted together
+through the simulator's own pixel model (thresholds, dead time, reset noise, jitter,
+photoreceptor, background events); linear radiance with a per-pixel uncertainty, NaN
+where a pixel has no information. It needs the rig and the sensor model (the recording's
+metadata, or a rig file, :mod:`asynhdr.io.rigfile`).
+
 Methods are records (:class:`Method` in :data:`METHODS`): a new method is one function
 and one entry. Per-pixel sums are one pass over the time-sorted events (numba),
 scatter-adding ``f(u) c_on`` or ``-f(u) c_off`` into ``(n_cycles, height * width)``.
@@ -65,7 +71,7 @@ import logging
 import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 import numba as nb
 import numpy as np
@@ -370,6 +376,7 @@ class _Params:
     gain: np.ndarray | None
     l_const: float
     rig: Rig | None
+    ml: dict[str, Any] | None = None
 
     def with_gain(self, a: np.ndarray) -> np.ndarray:
         """``a`` (``(..., height, width)``) times the c-map, in place."""
@@ -458,6 +465,16 @@ def _invert(rec: Recording, windows: CycleWindows, p: _Params) -> np.ndarray:
     return (p.l_const * rho).reshape(windows.n_cycles, rec.height, rec.width).astype(np.float32)
 
 
+def _ml(rec: Recording, windows: CycleWindows, p: _Params) -> np.ndarray:
+    from asynhdr.ml import reconstruct_ml
+
+    if p.rig is None:
+        raise ValueError("method 'ml' needs the rig (a simulated recording, or a rig file: "
+                         "--rig)")
+    return reconstruct_ml(rec, windows, rig=p.rig, l_const=p.l_const, cmap=p.gain,
+                          threshold=p.c_on, **(p.ml or {}))
+
+
 @dataclass(frozen=True)
 class Method:
     """A reconstruction method.
@@ -495,6 +512,8 @@ METHODS: dict[str, Method] = {
         Method("count", _count, False, False, "threshold", "L_const exp(c_on n_on)"),
         Method("invert", _invert, True, True, "threshold",
                "every event inverted through the rig's waveforms"),
+        Method("ml", _ml, True, True, "threshold",
+               "maximum likelihood under the simulator's pixel model, with an uncertainty"),
     )
 }
 """Every reconstruction method by name (the paper's weightings first)."""
@@ -540,16 +559,20 @@ def windows_for(
     period_us: float | None = None,
     single: bool = False,
     cycles: Cycles | None = None,
+    rig: Rig | None = None,
 ) -> CycleWindows:
     """Integration windows of a recording.
 
     With ``single`` the whole recording is one cycle starting at its first event (a
     single ramp, as in temporal-mapping captures). Otherwise the cycles of
     :func:`asynhdr.segment.find_cycles` (or ``cycles``), each integrated over
-    ``window_us``: by default the rig's ramp (simulated recordings) or the period, at
-    most the shortest cycle.
+    ``window_us``: by default the rig's ramp (simulated recordings, or ``rig``: a rig
+    file's, whose period also guides the cycle search) or the period, at most the
+    shortest cycle.
     """
     src = as_source(source)
+    if rig is not None and period_us is None and not single:
+        period_us = float(rig.period_us)
     if single:
         sc = src.scan()
         if sc.events == 0:
@@ -562,7 +585,7 @@ def windows_for(
     if starts.size == 0:
         raise ValueError(f"{src.name}: no cycles to reconstruct")
     if window_us is None:
-        rig = rig_of(src)
+        rig = rig if rig is not None else rig_of(src)
         window_us = rig.ramp_us if rig is not None else float(cyc.period_us)
         if starts.size > 1:  # a fitted period can exceed a cycle by a fraction of a µs
             window_us = min(float(window_us), float(np.min(np.diff(starts))))
@@ -577,12 +600,14 @@ def _params(
     threshold_on: float | None,
     threshold_off: float | None,
     l_const: float | None,
+    rig: Rig | None = None,
+    ml_options: dict[str, Any] | None = None,
 ) -> _Params:
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; expected one of {list(METHODS)}")
     if not (k > 0 and math.isfinite(k)):
         raise ValueError(f"k must be positive, got {k}")
-    rig = rig_of(src)
+    rig = rig if rig is not None else rig_of(src)
     c_on0, c_off0, _ = thresholds_of(src)
     c_on = c_on0 if threshold_on is None else float(threshold_on)
     c_off = c_off0 if threshold_off is None else float(threshold_off)
@@ -604,7 +629,8 @@ def _params(
             raise ValueError(f"c-map shape {cm.shape} does not match the sensor "
                              f"({src.height}, {src.width})")
         gain = np.asarray(cm, dtype=np.float64).ravel()
-    return _Params(k=float(k), c_on=c_on, c_off=c_off, gain=gain, l_const=lc, rig=rig)
+    return _Params(k=float(k), c_on=c_on, c_off=c_off, gain=gain, l_const=lc, rig=rig,
+                   ml=ml_options)
 
 
 def reconstruct(
@@ -617,6 +643,8 @@ def reconstruct(
     threshold_on: float | None = None,
     threshold_off: float | None = None,
     l_const: float | None = None,
+    rig: Rig | None = None,
+    ml_options: dict[str, Any] | None = None,
 ) -> np.ndarray:
     """One image per cycle of a whole recording, float32 ``(n_cycles, height, width)``.
 
@@ -632,14 +660,19 @@ def reconstruct(
     threshold_on, threshold_off : the nominal contrast thresholds (default: the
         recording's sensor, see :func:`thresholds_of`).
     l_const : the reference radiance (default: the rig's, else :data:`RELATIVE_L_CONST`).
+    rig : the rig (default: the recording's metadata), e.g. from a rig file
+        (:mod:`asynhdr.io.rigfile`).
+    ml_options : for ``ml``: keyword options of :func:`asynhdr.ml.reconstruct_ml`
+        (``sensor``, ``thresholds``, ``settled_start``, ``out``: a dict that receives the
+        uncertainty and the flags).
 
     Returns
     -------
     Images in the unit of ``l_const`` (the scene's unit for simulated recordings).
     """
     src = as_source(source)
-    p = _params(src, method, k, cmap, threshold_on, threshold_off, l_const)
-    windows = windows or windows_for(src)
+    p = _params(src, method, k, cmap, threshold_on, threshold_off, l_const, rig, ml_options)
+    windows = windows or windows_for(src, rig=p.rig)
     return METHODS[method].function(src.read(), windows, p)
 
 
@@ -718,6 +751,8 @@ def reconstruct_cycles(
     threshold_off: float | None = None,
     l_const: float | None = None,
     progress: Progress | None = None,
+    rig: Rig | None = None,
+    ml_options: dict[str, Any] | None = None,
 ) -> CycleImages:
     """Plan the reconstruction of a recording, to run cycle by cycle (memory flat in the
     recording's size): the cycles come from :func:`windows_for` (one streaming pass over
@@ -725,9 +760,10 @@ def reconstruct_cycles(
     reads the source once more, one cycle at a time. Arguments as in
     :func:`reconstruct` and :func:`windows_for`."""
     src = as_source(source)
-    p = _params(src, method, k, cmap, threshold_on, threshold_off, l_const)
+    p = _params(src, method, k, cmap, threshold_on, threshold_off, l_const, rig, ml_options)
     if windows is None:
         src.scan(progress=progress)
-        windows = windows_for(src, window_us=window_us, period_us=period_us, single=single)
+        windows = windows_for(src, window_us=window_us, period_us=period_us, single=single,
+                              rig=p.rig)
     return CycleImages(src, windows, method, p, progress)
 

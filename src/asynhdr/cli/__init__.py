@@ -13,8 +13,10 @@ def _register() -> None:
     # Each import adds its commands to ``app``.
     from asynhdr.cli import (  # noqa: F401
         bench,
+        calib,
         convert,
         core,
+        design,
         generator,
         info,
         reconstruct,

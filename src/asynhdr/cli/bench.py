@@ -51,13 +51,23 @@ def _fmt(v: float | None, nd: int = 2) -> str:
 
 def _run_scenes(files: list[Path], out: Path, *, width: int, height: int, preset: str,
                 scale: float | None, n_cycles: int, frame_camera: str, seed: int,
-                sensor_seed: int, update: Any) -> tuple[list[dict[str, Any]], dict[str, str]]:
+                sensor_seed: int, update: Any, rig: Any = None,
+                methods: tuple[str, ...] | None = None
+                ) -> tuple[list[dict[str, Any]], dict[str, str]]:
     from asynhdr.evaluate import calibrate_for_scenes, evaluate_scene
     from asynhdr.io.images import read_radiance, write_image
     from asynhdr.plots import plot_mosaic
 
     cmap = calibrate_for_scenes(width=width, height=height, sensor=preset,
-                                sensor_seed=sensor_seed)
+                                sensor_seed=sensor_seed, rig=rig)
+    more: dict[str, Any] = {"rig": rig}
+    if methods:
+        more["methods"] = methods
+    if rig is not None and "ml" in (methods or ("ml",)):
+        from asynhdr.evaluate import calibrate_thresholds_for_scenes
+
+        more["ml_thresholds"] = calibrate_thresholds_for_scenes(
+            width=width, height=height, sensor=preset, rig=rig, sensor_seed=sensor_seed)
     summaries: list[dict[str, Any]] = []
     figures: dict[str, str] = {}
     for i, f in enumerate(files):
@@ -67,7 +77,7 @@ def _run_scenes(files: list[Path], out: Path, *, width: int, height: int, preset
         ev = evaluate_scene(radiance, name=f.stem, width=width, height=height, sensor=preset,
                             scale=scale, cmap=cmap, n_cycles=n_cycles,
                             frame_camera=frame_camera, seed=seed, sensor_seed=sensor_seed,
-                            progress=update)
+                            progress=update, **more)
         summaries.append(ev.summary())
         y0, y1, x0, x1 = ev.metadata["region"]
         truth = ev.scene.radiance[y0:y1, x0:x1]
@@ -115,6 +125,12 @@ def evaluate(
     n_cycles: int = typer.Option(2, help="Cycles to simulate (the last is measured)."),
     seed: int = typer.Option(0, help="Seed of the captures' randomness."),
     sensor_seed: int = typer.Option(1, help="Seed of the sensor's frozen mismatch."),
+    rig_file: Path | None = typer.Option(None, "--rig", help="Rig file (TOML), e.g. from "
+                                         "'asynhdr design' (default: the paper's rig)."),
+    designed: bool = typer.Option(False, "--designed", help="Use the preset's designed rig "
+                                  "(asynhdr.design.DESIGNED) instead of the paper's."),
+    methods: str | None = typer.Option(None, help="Comma-separated event methods (default: "
+                                       "raw,linear,exp,ttfe,invert,ml)."),
 ) -> None:
     """Simulate and reconstruct real HDR scenes with every method, image them with a frame
     camera (single exposure, Debevec fusion of 10 exposures and of one cycle's worth), and
@@ -129,11 +145,22 @@ def evaluate(
         get_frame_camera(frame_camera)
         if scale is not None and not (scale > 0 and math.isfinite(scale)):
             fail(f"--scale must be a positive number, got {scale}")
+        rig = None
+        if rig_file is not None:
+            from asynhdr.io.rigfile import read_rig
+
+            rig = read_rig(rig_file).rig
+        elif designed:
+            from asynhdr.design import default_rig
+
+            rig = default_rig(preset)
+        meths = tuple(m.strip() for m in methods.split(",") if m.strip()) if methods else None
         with progress_bar() as update:
             summaries, _ = _run_scenes(scenes, out, width=width, height=height, preset=preset,
                                        scale=scale, n_cycles=n_cycles,
                                        frame_camera=frame_camera, seed=seed,
-                                       sensor_seed=sensor_seed, update=update)
+                                       sensor_seed=sensor_seed, update=update, rig=rig,
+                                       methods=meths)
     except (ValueError, FileNotFoundError) as exc:
         fail(str(exc))
     _print_scenes(summaries)

@@ -332,18 +332,25 @@ def simulate(
     height: int = typer.Option(480, help="Sensor height (pixels)."),
     preset: str = typer.Option(_default(_simulate, "sensor"), help="Sensor preset."),
     n_cycles: int = typer.Option(3, help="Modulation cycles."),
-    period_us: int = typer.Option(Rig.period_us, help="Cycle period (µs)."),
-    ramp_fraction: float = typer.Option(Rig.ramp_fraction,
-                                        help="Part of the cycle the ramp takes."),
-    t1_shape: str = typer.Option(Rig.t1_shape, help="Scene panel ramp: linear | exponential."),
-    t2_shape: str = typer.Option(Rig.t2_shape,
-                                 help="Reference panel ramp: linear | exponential."),
+    period_us: int | None = typer.Option(None, help=f"Cycle period (µs); default "
+                                         f"{Rig.period_us:,}."),
+    ramp_fraction: float | None = typer.Option(None, help="Part of the cycle the ramp takes "
+                                               f"(paper rig; default {Rig.ramp_fraction})."),
+    t1_shape: str | None = typer.Option(None, help="Scene panel ramp: linear | exponential "
+                                        f"(paper rig; default {Rig.t1_shape})."),
+    t2_shape: str | None = typer.Option(None, help="Reference panel ramp: linear | "
+                                        f"exponential (paper rig; default {Rig.t2_shape})."),
     panel: str = typer.Option(Rig.panel, help="Panels the drive goes through: ideal (the "
                               "target at once) | tn | fast_shutter (real LC panels)."),
     pre_emphasis: bool = typer.Option(Rig.pre_emphasis, help="Design the panels' drive to "
                                       "invert their response (with --panel tn or "
                                       "fast_shutter)."),
-    l_const: float = typer.Option(Rig.l_const, help="Reference radiance, in the scene's unit."),
+    l_const: float | None = typer.Option(None, help="Reference radiance, in the scene's unit "
+                                         f"(paper rig; default {Rig.l_const:g})."),
+    rig_file: Path | None = typer.Option(None, "--rig", help="Rig file (TOML) to simulate "
+                                         "(from 'asynhdr design')."),
+    rig_out: Path | None = typer.Option(None, "--rig-out", help="Write the rig (and sensor) "
+                                        "as a rig file, for 'reconstruct --rig'."),
     scale: float | None = typer.Option(None, help="Multiply the scene radiance by this "
                                        "(default for HDR images: automatic exposure, the "
                                        "log-average at L_const sqrt(contrast ratio 1))."),
@@ -373,23 +380,22 @@ def simulate(
 ) -> None:
     """Simulate a scene seen through the rig and write the recording."""
     from asynhdr.io import write_recording
-    from asynhdr.rig import Rig
     from asynhdr.sensor.params import get_preset
     from asynhdr.simulate import simulate as run
 
     check_outputs([out], overwrite=overwrite)
     try:
         sensor = get_preset(preset)
-        rig = Rig(period_us=period_us, ramp_fraction=ramp_fraction, t1_shape=t1_shape,  # type: ignore[arg-type]
-                  t2_shape=t2_shape, l_const=l_const, panel=panel,  # type: ignore[arg-type]
-                  pre_emphasis=pre_emphasis)
+        rig = _simulate_rig(preset, rig_file, period_us=period_us, ramp_fraction=ramp_fraction,
+                            t1_shape=t1_shape, t2_shape=t2_shape, l_const=l_const,
+                            panel=panel, pre_emphasis=pre_emphasis)
         if scale is not None and not (scale > 0 and math.isfinite(scale)):
             fail(f"--scale must be a positive number, got {scale}")
         sc = _scene_from_spec(scene, width, height, scale,
-                              target=l_const * math.sqrt(rig.contrast_ratio_1),
+                              target=_rig_middle(rig),
                               cfa=cfa or ("rggb" if colour else None))
         if motion is not None:
-            sc = _moving(sc, motion, duration_us=n_cycles * period_us,
+            sc = _moving(sc, motion, duration_us=n_cycles * rig.period_us,
                          frame_step_us=frame_step_us)
         kw: dict[str, Any] = dict(rig=rig, sensor=sensor, n_cycles=n_cycles, rng=seed,
                                   sensor_seed=sensor_seed, engine=engine, dt_us=dt_us)
@@ -404,7 +410,50 @@ def simulate(
             with progress_bar() as update:
                 rec = run(sc, progress=update, **kw)
         write_recording(out, rec, overwrite=overwrite)
+        if rig_out is not None:
+            from asynhdr import __version__
+            from asynhdr.io.rigfile import write_rig
+
+            write_rig(rig_out, rig, sensor=sensor,
+                      radiance_unit=str(rec.metadata.get("radiance_unit", "lux")),
+                      made={"by": "asynhdr simulate", "asynhdr_version": __version__,
+                            "recording": str(out), "scene": scene})
     except (ValueError, FileNotFoundError) as exc:
         fail(str(exc))
     console.print(f"{rec.events.size:,} events, {rec.triggers.size} triggers, "
-                  f"{rec.width}x{rec.height} -> {out}")
+                  f"{rec.width}x{rec.height} -> {out}" + (f" (rig -> {rig_out})" if rig_out
+                                                           else ""))
+
+
+def _rig_middle(rig: Any) -> float:
+    """The radiance at the middle of a rig's working range (where automatic exposure puts a
+    scene's log-average): ``L_const sqrt(CR_1)`` for the paper's rig; for a rig with its
+    own waveforms the geometric middle of ``L_const T2 / T1`` over the ramp's extremes."""
+    if rig.t1 is None:
+        return float(rig.l_const * math.sqrt(rig.contrast_ratio_1))
+    w1, w2 = rig.waveforms()
+    lo = rig.l_const * float(w2.values.min()) / float(w1.values.max())
+    hi = rig.l_const * float(w2.values.max()) / float(w1.values.min())
+    return float(math.sqrt(lo * hi))
+
+
+def _simulate_rig(preset: str, rig_file: Path | None, *, period_us: int | None,
+                  ramp_fraction: float | None, t1_shape: str | None, t2_shape: str | None,
+                  l_const: float | None, panel: str, pre_emphasis: bool) -> Any:
+    """The rig ``simulate`` uses: a rig file; else, when any of the paper rig's options is
+    given, that rig (the others at their defaults); else the designed rig of the preset
+    (:data:`asynhdr.design.DESIGNED`)."""
+    if rig_file is not None:
+        from asynhdr.io.rigfile import read_rig
+
+        return read_rig(rig_file).rig
+    paper = (ramp_fraction, t1_shape, t2_shape, l_const)
+    if any(v is not None for v in paper) or panel != "ideal":
+        return Rig(period_us=Rig.period_us if period_us is None else period_us,
+                   ramp_fraction=Rig.ramp_fraction if ramp_fraction is None else ramp_fraction,
+                   t1_shape=t1_shape or Rig.t1_shape, t2_shape=t2_shape or Rig.t2_shape,  # type: ignore[arg-type]
+                   l_const=Rig.l_const if l_const is None else l_const, panel=panel,
+                   pre_emphasis=pre_emphasis)
+    from asynhdr.design import default_rig
+
+    return default_rig(preset, period_us=period_us)

@@ -68,6 +68,12 @@ def reconstruct(
     workers: int | None = typer.Option(None, help="With --scheduler local: worker "
                                        "processes (default: one per core)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace existing images."),
+    rig: Path | None = typer.Option(None, "--rig", help="Rig file (TOML, from 'asynhdr "
+                                    "design' or 'simulate --rig-out'): the rig and sensor "
+                                    "of a real recording, for ml, invert and ttfe."),
+    calibration: Path | None = typer.Option(None, "--calibration", help="Calibration file "
+                                            "(.npz, asynhdr.calib) with per-pixel ON and OFF "
+                                            "thresholds, for ml."),
 ) -> None:
     """Reconstruct one HDR image per modulation cycle.
 
@@ -95,14 +101,22 @@ def reconstruct(
     m = METHODS[method]
     meta: dict[str, Any] = {"source": str(recording), "method": method, "k": k,
                             "cmap": str(cmap) if cmap else None, "radiometric": m.radiometric}
+    from asynhdr.cli.ml_support import MlOutputs
+
+    mlo = MlOutputs.open(rig, calibration, method=method, formats=fmts, fail=fail)
+    if rig is not None:
+        meta["rig"] = str(rig)
+    opts = mlo.options
+    if opts is not None and single:  # one ramp from rest: the pixels start on their reference
+        opts["settled_start"] = True
     try:
         cm = load_cmap(cmap) if cmap is not None else None
         with contextlib.ExitStack() as stack, progress_bar() as update:
             plan = reconstruct_cycles(src, method=method, k=k, cmap=cm, window_us=window_us,
                                       period_us=period_us, single=single,
                                       threshold_on=threshold_on, threshold_off=threshold_off,
-                                      progress=update)
-            unit = plan.metadata.get("radiance_unit", "relative")
+                                      progress=update, rig=mlo.rig, ml_options=opts)
+            unit = mlo.unit or plan.metadata.get("radiance_unit", "relative")
             warm = plan.windows.warmup
             colour = bool(plan.metadata.get("cfa")) and demosaic != "none"
             images: Iterable[tuple[int, int, np.ndarray]] = plan
@@ -118,7 +132,9 @@ def reconstruct(
                 if skip_warmup and i < warm:
                     continue
                 info = dict(meta, cycle=i, unit=unit, warmup=i < warm)
-                if colour:
+                if mlo.active:
+                    mlo.write(out / f"{stem}{i:04d}", img, info, tonemap=tonemap)
+                elif colour:
                     write_colour(out / f"{stem}{i:04d}", img, plan.metadata, fmts,
                                  method=demosaic, tonemap=tonemap, extra=info)
                 else:

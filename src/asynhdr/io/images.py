@@ -367,6 +367,7 @@ def write_image(
     metadata: Mapping[str, Any] | None = None,
     tonemap: str = "log",
     tonemap_options: Mapping[str, Any] | None = None,
+    allow_nan: bool = False,
 ) -> Path:
     """Write a 2-D linear image ``(height, width)`` to ``path``, format by extension.
 
@@ -378,6 +379,9 @@ def write_image(
     The image is stored as float32. The write is atomic: on any error nothing
     appears under ``path`` and no temporary file is left.
 
+    With ``allow_nan``, NaN marks pixels without a value: kept in ``.exr``, ``.npy`` and
+    ``.tif``, drawn black in ``.png``, refused by ``.hdr``.
+
     Returns
     -------
     pathlib.Path
@@ -386,9 +390,9 @@ def write_image(
     Raises
     ------
     ValueError
-        Unsupported extension, not 2-D, not real, NaN / infinite values (with their
-        count), negative values for ``.hdr``, metadata that is not JSON-serialisable.
-        Nothing is written.
+        Unsupported extension, not 2-D, not real, NaN (unless ``allow_nan``) / infinite
+        values (with their count), negative values for ``.hdr``, metadata that is not
+        JSON-serialisable. Nothing is written.
     """
     p = Path(path)
     fmt = _format_of(p, WRITE_FORMATS, "write_image")
@@ -401,7 +405,8 @@ def write_image(
         raise ValueError(f"{p}: write_image expects real numbers, got dtype {a.dtype}")
     with np.errstate(over="ignore", invalid="ignore"):
         a = np.ascontiguousarray(a, dtype=np.float32)
-    n_bad = int(np.count_nonzero(~np.isfinite(a)))
+    nan = np.isnan(a) if allow_nan and fmt != "hdr" else None
+    n_bad = int(np.count_nonzero(~np.isfinite(a))) - (int(nan.sum()) if nan is not None else 0)
     if n_bad:
         raise ValueError(
             f"{p}: image has {n_bad} NaN or infinite values (after conversion to float32); "
@@ -422,7 +427,15 @@ def write_image(
             logger.warning("%s: .%s files hold no metadata; metadata not stored", p, fmt)
     payload = a
     if fmt == "png":
-        payload = _tonemap(a, method=tonemap, **dict(tonemap_options or {}))
+        if nan is not None and nan.any():
+            if nan.all():
+                payload = np.zeros(a.shape, np.uint8)
+            else:
+                fill = np.where(nan, float(np.nanmin(a)), a)
+                payload = _tonemap(fill, method=tonemap, **dict(tonemap_options or {}))
+                payload = np.where(nan, 0, payload).astype(payload.dtype)
+        else:
+            payload = _tonemap(a, method=tonemap, **dict(tonemap_options or {}))
     with atomic_path(p) as tmp:
         _WRITERS[fmt](tmp, payload, meta_json)
     return p

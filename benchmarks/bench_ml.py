@@ -1,0 +1,224 @@
+"""ml on a 24-level chart from 0.1 to 316,000 lux (132 dB), every preset, with the CLI's
+default (designed) rig: the longest run of levels with |bias| <= 5 % (after one global
+scale) and per-pixel SNR >= 20 dB, beside ``invert`` and the paper's ``exp`` + c-map; ml's
+spread against the model's Cramér-Rao bound; and ml's speed on a 1280x720 cycle beside
+``numpy.bincount`` over the same events (and the paper's weightings beside it).
+
+Run: ``python benchmarks/bench_ml.py --out out/bench`` (``make bench`` runs it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from asynhdr import ml
+from asynhdr.calib import thresholds_from_flats
+from asynhdr.calibrate import estimate_cmap
+from asynhdr.design import default_rig
+from asynhdr.metrics import central_rois
+from asynhdr.reconstruct import CycleWindows, reconstruct, weighted_sums
+from asynhdr.scene import flat_field, step_chart
+from asynhdr.sensor.params import get_preset
+from asynhdr.simulate import simulate
+
+LEVELS = 24
+L_TOP = 10 ** 5.5
+DENSITIES = np.linspace(0.0, 6.5, LEVELS)  # 316,000 lux down to 0.1 lux
+MAX_BIAS = 0.05
+MIN_SNR_DB = 20.0
+
+
+def chart_figures(img: np.ndarray, scene: Any) -> dict[str, Any]:
+    """Per level (sorted by radiance): bias after one global scale, per-pixel SNR over the
+    central 16x16 region; the longest run with |bias| <= 5 % and SNR >= 20 dB."""
+    rois = central_rois(scene.rois)
+    truth = np.asarray(scene.truth, dtype=np.float64)
+    order = np.argsort(truth)
+    means, snrs, fin = [], [], []
+    for k in order:
+        y0, y1, x0, x1 = rois[int(k)]
+        px = np.asarray(img[y0:y1, x0:x1], dtype=np.float64).ravel()
+        ok = np.isfinite(px) & (px > 0)
+        fin.append(float(ok.mean()))
+        if ok.sum() < 0.5 * px.size:
+            means.append(np.nan)
+            snrs.append(-np.inf)
+            continue
+        m, s = float(px[ok].mean()), float(px[ok].std())
+        means.append(m)
+        snrs.append(20 * math.log10(m / s) if s > 0 else np.inf)
+    lv = truth[order]
+    mu = np.array(means)
+    good = np.isfinite(mu)
+    scale = float(np.exp(np.median(np.log(lv[good] / mu[good])))) if good.any() else np.nan
+    bias = mu * scale / lv - 1.0
+    ok = good & (np.abs(bias) <= MAX_BIAS) & (np.array(snrs) >= MIN_SNR_DB)
+    best = (0.0, -1, -1)
+    i = 0
+    while i < ok.size:
+        if ok[i]:
+            j = i
+            while j + 1 < ok.size and ok[j + 1]:
+                j += 1
+            span = 20 * math.log10(lv[j] / lv[i])
+            if span > best[0] or best[1] < 0:
+                best = (span, i, j)
+            i = j + 1
+        else:
+            i += 1
+    span, i, j = best
+    run_snr = float(np.mean(np.array(snrs)[i:j + 1])) if i >= 0 else float("nan")
+    return {"run_db": span, "run_lux": [float(lv[i]), float(lv[j])] if i >= 0 else None,
+            "run_levels": int(j - i + 1) if i >= 0 else 0, "run_mean_snr_db": run_snr,
+            "scale": scale, "levels_lux": lv.tolist(), "bias": bias.tolist(),
+            "snr_db": [float(x) for x in snrs], "finite_fraction": fin}
+
+
+def run_preset(preset: str, *, width: int, height: int, seed: int = 0,
+               rig: Any = None) -> dict[str, Any]:
+    sensor = get_preset(preset)
+    rig = rig or default_rig(preset)
+    scene = step_chart(width=width, height=height, densities=DENSITIES, illuminance_lux=L_TOP,
+                       columns=8)
+    t0 = time.perf_counter()
+    rec = simulate(scene, rig=rig, sensor=sensor, n_cycles=2, rng=seed, sensor_seed=1)
+    t_sim = time.perf_counter() - t0
+    # calibration: thresholds from flat fields 30x above and below L_const; the paper's
+    # c-map from flat fields at L_const
+    rads = [rig.l_const * 30, rig.l_const / 30] * 2
+    flats = [simulate(flat_field(width=width, height=height, radiance=r), rig=rig,
+                      sensor=sensor, n_cycles=3, rng=100 + i, sensor_seed=1)
+             for i, r in enumerate(rads)]
+    cal = thresholds_from_flats(flats, radiance=rads, rig=rig, sensor=sensor)
+    cflats = [simulate(flat_field(width=width, height=height, radiance=rig.l_const), rig=rig,
+                       sensor=sensor, n_cycles=2, rng=200 + i, sensor_seed=1) for i in range(2)]
+    cmap = estimate_cmap(cflats)
+    out: dict[str, Any] = {"preset": preset, "rig": {"l_const": rig.l_const,
+                                                     "period_us": rig.period_us},
+                           "events": int(rec.events.size), "simulate_s": t_sim,
+                           "calibration": cal.how}
+    thr = cal.threshold_maps()
+    runs = {
+        "ml": dict(method="ml"),
+        "ml + calibration": dict(method="ml", ml_options={"thresholds": thr}),
+        "invert": dict(method="invert"),
+        "invert + c-map": dict(method="invert", cmap=cmap),
+        "exp + c-map (paper)": dict(method="exp", cmap=cmap),
+    }
+    res: dict[str, Any] = {}
+    for name, kw in runs.items():
+        t0 = time.perf_counter()
+        img = reconstruct(rec, **kw)[-1]  # type: ignore[arg-type]
+        dt = time.perf_counter() - t0
+        f = chart_figures(img, scene)
+        f["seconds"] = dt
+        res[name] = f
+        print(f"  {preset:9s} {name:22s} run {f['run_db']:6.1f} dB over {f['run_levels']:2d} "
+              f"levels {f['run_lux']}, mean SNR {f['run_mean_snr_db']:5.1f} dB ({dt:.1f} s)",
+              flush=True)
+    out["methods"] = res
+    # ml's spread against the model's bound, calibrated thresholds, per level
+    model = ml.cached_model(rig, sensor, window_us=rig.ramp_us)
+    quiet = sensor.with_(name="quiet", reset_noise_sigma=0.0, jitter_sigma_us=0.0,
+                         leak_rate_hz=0.0, shot_noise_rate_hz=0.0, hot_pixel_fraction=0.0,
+                         dead_pixel_fraction=0.0, max_event_rate_hz=0.0)
+    assert thr is not None
+    clean = simulate(scene, rig=rig, sensor=quiet, n_cycles=2, rng=seed,
+                     thresholds=(thr[0], thr[1]))
+    pri = ml.thresholds_prior(sensor, width=width, height=height, c_on=thr[0], c_off=thr[1],
+                              sigma=thr[2])
+    bound = ml.fisher_information(clean.events, width=width, height=height,
+                                  start_us=int(rig.period_us), model=model, priors=pri,
+                                  log_radiance=np.log(scene.radiance))
+    extra: dict[str, Any] = {}
+    img = reconstruct(rec, method="ml", ml_options={"thresholds": thr, "out": extra})[-1]
+    rois = central_rois(scene.rois)
+    rows = []
+    for k in np.argsort(scene.truth):
+        y0, y1, x0, x1 = rois[int(k)]
+        g = np.log(img[y0:y1, x0:x1].astype(np.float64))
+        crb = float(np.nanmedian(bound[y0:y1, x0:x1]))
+        spread = float(np.nanstd(g)) if np.isfinite(g).sum() > 10 else float("nan")
+        stated = float(np.nanmedian(extra["sigma_log"][-1][y0:y1, x0:x1]))
+        rows.append({"lux": float(scene.truth[k]), "std_ln": spread, "crb_ln": crb,
+                     "stated_ln": stated, "ratio": spread / crb if crb > 0 else None})
+    out["crb"] = rows
+    ratios = [r["ratio"] for r in rows if r["ratio"] and math.isfinite(r["ratio"])]
+    print(f"  {preset:9s} ml spread / bound over the levels: median {np.median(ratios):.2f} "
+          f"(25-75 %: {np.percentile(ratios, 25):.2f}-{np.percentile(ratios, 75):.2f})",
+          flush=True)
+    return out
+
+
+def speed(width: int = 1280, height: int = 720, repeats: int = 3) -> dict[str, Any]:
+    """ml on one 1280x720 cycle of a scene spanning the range, beside numpy.bincount over
+    the same events, and the paper's weightings (weighted sums) beside it."""
+    preset = "imx636"
+    sensor = get_preset(preset)
+    rig = default_rig(preset)
+    gen = np.random.default_rng(0)
+    scene = np.exp(gen.uniform(math.log(0.3), math.log(3e5), (height, width)))
+    rec = simulate(scene, rig=rig, sensor=sensor, n_cycles=1, rng=1, sensor_seed=1)
+    ev = rec.events
+    w = CycleWindows(np.array([0]), rig.ramp_us)
+    reconstruct(rec, method="ml", windows=w)  # tables and compilation
+    weighted_sums(rec, w, method="exp")
+
+    def med(f: Any) -> float:
+        ts = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            f()
+            ts.append(time.perf_counter() - t0)
+        return float(np.median(ts))
+
+    def binc() -> None:
+        idx = ev["y"].astype(np.int64) * width + ev["x"]
+        np.bincount(idx, minlength=width * height)
+
+    t_b = med(binc)
+    t_ml = med(lambda: reconstruct(rec, method="ml", windows=w))
+    t_w = {m: med(lambda m=m: weighted_sums(rec, w, method=m)) for m in ("raw", "exp")}
+    out = {"events": int(ev.size), "bincount_s": t_b, "ml_s": t_ml, "ml_ratio": t_ml / t_b,
+           **{f"{m}_s": v for m, v in t_w.items()},
+           **{f"{m}_ratio": v / t_b for m, v in t_w.items()}}
+    print(f"  speed 1280x720, {ev.size:,} events: bincount {t_b * 1e3:.0f} ms; ml "
+          f"{t_ml * 1e3:.0f} ms ({t_ml / t_b:.1f}x); raw {t_w['raw'] * 1e3:.0f} ms "
+          f"({t_w['raw'] / t_b:.2f}x); exp {t_w['exp'] * 1e3:.0f} ms "
+          f"({t_w['exp'] / t_b:.2f}x)", flush=True)
+    return out
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--out", type=Path, default=Path("out/bench"))
+    ap.add_argument("--presets", nargs="*", default=["ideal", "v2e", "davis346", "imx636"])
+    ap.add_argument("--width", type=int, default=400)
+    ap.add_argument("--height", type=int, default=180)
+    ap.add_argument("--no-speed", action="store_true")
+    ap.add_argument("--rig", type=Path, default=None,
+                    help="a rig file to use instead of each preset's designed rig")
+    args = ap.parse_args(argv)
+    rig = None
+    if args.rig is not None:
+        from asynhdr.io.rigfile import read_rig
+
+        rig = read_rig(args.rig).rig
+    results: dict[str, Any] = {"presets": {}}
+    for p in args.presets:
+        results["presets"][p] = run_preset(p, width=args.width, height=args.height, rig=rig)
+    if not args.no_speed:
+        results["speed"] = speed()
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "bench_ml.json").write_text(json.dumps(results, indent=1, default=float))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,110 @@
+"""``asynhdr design``: the rig that gives ``ml`` the widest dynamic range for a sensor."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import typer
+from rich.table import Table
+
+from asynhdr.cli._app import app
+from asynhdr.cli.core import console, fail, progress_bar
+from asynhdr.design import (
+    DEFAULT_FRAME_RATE_HZ,
+    DEFAULT_MIN_SNR_DB,
+    DEFAULT_SCENE_RANGE,
+)
+
+__all__ = ["design"]
+
+
+@app.command()
+def design(
+    preset: str = typer.Option("imx636", help="Sensor preset: ideal | v2e | davis346 | "
+                               "imx636."),
+    l_min: float = typer.Option(DEFAULT_SCENE_RANGE[0], help="Darkest scene radiance (lux)."),
+    l_max: float = typer.Option(DEFAULT_SCENE_RANGE[1], help="Brightest scene radiance "
+                                "(lux)."),
+    frame_rate_hz: float = typer.Option(DEFAULT_FRAME_RATE_HZ, help="Cycles per second."),
+    contrast_ratio: float = typer.Option(1000.0, help="Panels' open/closed ratio."),
+    min_snr_db: float = typer.Option(DEFAULT_MIN_SNR_DB, help="Per-pixel SNR a level needs "
+                                     "to count in the range."),
+    out: Path | None = typer.Option(None, "--out", "-o", help="Rig file to write (.toml)."),
+    compare: bool = typer.Option(False, "--compare", help="Also predict the paper's rig "
+                                 "(linear ramps, t2_stop 0.5, L_const 10 lux) and a "
+                                 "cross-fade (both exponential, T2 to its floor)."),
+    json_out: Path | None = typer.Option(None, "--json", help="Write every figure as JSON."),
+) -> None:
+    """Choose L_const, the ramps' split and the reference floor that maximise the range over
+    which ml's predicted per-pixel SNR (the model's Cramér-Rao bound) is at least
+    --min-snr-db; print it and write the rig file."""
+    import numpy as np
+
+    from asynhdr.design import _longest_run, predict
+    from asynhdr.design import design as run
+    from asynhdr.rig import Rig
+    from asynhdr.sensor.params import get_preset
+
+    try:
+        sensor = get_preset(preset)
+        with progress_bar() as update:
+            res = run(sensor, l_min=l_min, l_max=l_max, frame_rate_hz=frame_rate_hz,
+                      contrast_ratio=contrast_ratio, min_snr_db=min_snr_db,
+                      progress=lambda d, t: update("candidates", d, t))
+    except ValueError as exc:
+        fail(str(exc))
+    p = res.params
+    rows = {"designed": res.snr_db}
+    others: dict[str, dict[str, float]] = {}
+    if compare:
+        period = round(1e6 / frame_rate_hz)
+        alts = {
+            "paper (linear, t2_stop 0.5)": Rig(period_us=period, l_const=10.0),
+            "cross-fade (exp, T2 to floor)": Rig(period_us=period, l_const=p["l_const"],
+                                                 t1_shape="exponential",
+                                                 t2_shape="exponential", t2_stop=1.0),
+        }
+        for name, rig in alts.items():
+            snr = predict(rig, sensor, levels=res.levels)
+            db, lo, hi = _longest_run(res.levels, snr >= min_snr_db)
+            rows[name] = snr
+            others[name] = {"range_db": db, "l_lo": lo, "l_hi": hi}
+    table = Table(title=f"Predicted per-pixel SNR of ml (dB), sensor '{preset}', "
+                  f"{frame_rate_hz:g} cycles/s")
+    table.add_column("radiance (lux)", justify="right")
+    for name in rows:
+        table.add_column(name, justify="right")
+    for i, lv in enumerate(res.levels):
+        table.add_row(f"{lv:.3g}", *[f"{rows[n][i]:.1f}" for n in rows])
+    console.print(table)
+    console.print(f"design: L_const {p['l_const']:.4g} lux; scene panel opens over phase "
+                  f"0..{p['a']:.2f}, reference closes over {p['a']:.2f}..{p['b']:.2f} to "
+                  f"{p['floor_2']:g}, hold to {res.rig.ramp_fraction:.2f}; cycle "
+                  f"{int(p['period_us'])} µs")
+    console.print(f"predicted range (per-pixel SNR >= {min_snr_db:g} dB): "
+                  f"[bold]{res.range_db:.1f} dB[/] ({res.l_lo:.3g} to {res.l_hi:.3g} lux)")
+    for name, o in others.items():
+        console.print(f"  {name}: {o['range_db']:.1f} dB ({o['l_lo']:.3g} to {o['l_hi']:.3g})")
+    if out is not None:
+        from asynhdr import __version__
+        from asynhdr.io.rigfile import write_rig
+
+        try:
+            write_rig(out, res.rig, sensor=sensor, radiance_unit="lux",
+                      made={"by": "asynhdr design", "asynhdr_version": __version__,
+                            "preset": preset, "l_min": l_min, "l_max": l_max,
+                            "frame_rate_hz": frame_rate_hz, "contrast_ratio": contrast_ratio,
+                            "min_snr_db": min_snr_db, "predicted_range_db": res.range_db,
+                            **{k: v for k, v in p.items()}})
+        except (ValueError, OSError) as exc:
+            fail(str(exc))
+        console.print(f"rig file -> {out}")
+    if json_out is not None:
+        from asynhdr._atomic import atomic_path
+
+        d = res.summary()
+        d["compare"] = {k: dict(v, snr_db=np.asarray(rows[k]).tolist())
+                        for k, v in others.items()}
+        with atomic_path(json_out) as tmp:
+            tmp.write_text(json.dumps(d, indent=1, default=float))

@@ -1,0 +1,93 @@
+"""What ``asynhdr reconstruct`` needs for rig files and for ``ml``'s extra outputs.
+
+For ``--method ml`` each cycle writes, beside the radiance image (NaN where a pixel has no
+information), ``<stem>_sigma.<ext>``: the standard deviation of ``ln L`` per pixel (the
+model's bound at the estimate), in the first float format asked for (``.exr`` by
+default), and ``<stem>_valid.png``: 255 where the pixel has an estimate, 0 where not.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from asynhdr.rig import Rig
+from asynhdr.sensor.params import SensorParams
+
+__all__ = ["MlOutputs"]
+
+_FLOAT_FORMATS = ("exr", "npy", "tif")
+
+
+class MlOutputs:
+    """The rig (and sensor) of a rig file, the calibration, and the writer of ``ml``'s
+    images, uncertainty and mask."""
+
+    def __init__(self, *, rig: Rig | None, sensor: SensorParams | None, unit: str | None,
+                 thresholds: tuple[np.ndarray, np.ndarray, np.ndarray] | None, method: str,
+                 formats: list[str]) -> None:
+        self.rig = rig
+        self.sensor = sensor
+        self.unit = unit
+        self.thresholds = thresholds
+        self.active = method == "ml"
+        self.formats = formats
+        self.extra: dict[str, Any] = {}
+
+    @classmethod
+    def open(cls, rig_path: Path | None, calibration: Path | None, *, method: str,
+             formats: list[str], fail: Callable[[str], None]) -> MlOutputs:
+        rig = sensor = unit = thr = None
+        try:
+            if rig_path is not None:
+                from asynhdr.io.rigfile import read_rig
+
+                rf = read_rig(rig_path)
+                rig, sensor, unit = rf.rig, rf.sensor, rf.radiance_unit
+            if calibration is not None:
+                from asynhdr.io.calibration import read_calibration
+
+                cal = read_calibration(calibration)
+                thr = cal.threshold_maps()
+                if thr is None:
+                    fail(f"{calibration}: holds no per-pixel thresholds")
+                if sensor is None and cal.sensor is not None:
+                    sensor = cal.sensor
+        except (ValueError, OSError) as exc:
+            fail(str(exc))
+        return cls(rig=rig, sensor=sensor, unit=unit, thresholds=thr, method=method,
+                   formats=formats)
+
+    @property
+    def options(self) -> dict[str, Any] | None:
+        """``ml_options`` for :func:`asynhdr.reconstruct.reconstruct`."""
+        if not self.active:
+            return None
+        return {"sensor": self.sensor, "thresholds": self.thresholds, "out": self.extra}
+
+    def write(self, stem: Path, img: np.ndarray, meta: dict[str, Any], *,
+              tonemap: str) -> None:
+        from asynhdr.io.images import write_image
+
+        for f in self.formats:
+            write_image(stem.with_suffix("." + f), img, allow_nan=True, tonemap=tonemap,
+                        metadata=meta if f in ("exr", "tif") else None)
+        sigma = self.extra.get("sigma_log")
+        flags = self.extra.get("flags")
+        if sigma is None or flags is None:
+            return
+        fl = next((f for f in self.formats if f in _FLOAT_FORMATS), "exr")
+        sm = dict(meta, quantity="standard deviation of ln L (model bound at the estimate)")
+        write_image(Path(f"{stem}_sigma.{fl}"), sigma[0], allow_nan=True,
+                    metadata=sm if fl in ("exr", "tif") else None)
+        import cv2
+
+        from asynhdr._atomic import atomic_path
+
+        valid = np.where(flags[0] == 0, 255, 0).astype(np.uint8)
+        with atomic_path(Path(f"{stem}_valid.png")) as tmp:
+            if not cv2.imwrite(str(tmp), valid):
+                raise OSError(f"{stem}_valid.png: OpenCV failed to write the mask")

@@ -1,0 +1,269 @@
+"""Rig design for dynamic range: the modulation that lets ``ml`` measure the widest range.
+
+What the rig sets (Wu et al. 2024 leave it to the builder):
+
+- a pixel of radiance ``L`` sees ``V(t) = ln(k (T1(t) L + T2(t) L_const))``; it tells its
+  radiance through the instant where the two terms cross, ``T1 L = T2 L_const``. That
+  instant exists for ``L`` between ``L_const T2_end / T1_end`` and ``L_const T2_0 / T1_0``:
+  about ``CR_2`` below and ``CR_1`` above ``L_const`` (the panels' contrast ratios), a
+  range of ``CR_1 CR_2`` (120 dB for two 1000:1 panels) before the margins;
+- with the paper's linear ramps and the reference stopping half way (``t2_stop = 0.5``) a
+  pixel at ``0.5 L_const`` sees constant irradiance (``rho dT1 + dT2 = 0``) and fires
+  nothing: a blind band in the middle of the range; and pixels darker than
+  ``L_const T2_end`` never cross;
+- the photoreceptor is slow in the dark (``tau ~ 1 / I``): the crossing must happen when
+  the pixel gets as much light as it can.
+
+The family designed here, ``sequential``, meets all three: over ``[0, a]`` the scene panel
+opens log-linearly from its floor to fully open (``T2 = 1``): pixels brighter than
+``L_const`` cross, at irradiance ``2 k L_const``; over ``[a, b]`` the reference closes
+log-linearly to its floor (``T1 = 1``): darker pixels cross, at irradiance ``2 k L`` (the
+most a pixel can get); over ``[b, R]`` both hold, so the slow dark pixels settle; then
+both return. Every pixel's signal moves by at least ``ln 2`` each way: no blind band.
+The paper's rule ``|dT2/dt| < |dT1/dt|`` is not kept (``T1`` is still while ``T2``
+falls): with ``ml`` it is unnecessary, and ``asynhdr design --compare`` measures the
+rule-keeping rig (linear ramps, ``t2_stop = 0.5``) beside it.
+
+:func:`design` searches ``L_const``, the split ``a``, the end of the reference's ramp ``b``
+and its floor for the longest run of radiance levels whose predicted per-pixel SNR
+(``-20 log10(sigma_ln L)``, ``sigma`` the Cramér-Rao bound of :mod:`asynhdr.ml` on the
+noiseless events of the sensor preset) is at least ``min_snr_db``; the cycle length is
+the frame rate's period.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from asynhdr.rig import Rig, Waveform
+from asynhdr.sensor.params import SensorParams, get_preset
+
+__all__ = [
+    "DEFAULT_FRAME_RATE_HZ",
+    "DEFAULT_SCENE_RANGE",
+    "DESIGNED",
+    "DesignResult",
+    "default_rig",
+    "design",
+    "predict",
+    "sequential_rig",
+]
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_FRAME_RATE_HZ = 20.0
+"""The paper's 20 cycles per second."""
+
+DEFAULT_SCENE_RANGE = (0.1, 10 ** 5.5)
+"""Radiance range (lux) the designs are made for: 0.1 to 316,000 lux (132 dB)."""
+
+DEFAULT_MIN_SNR_DB = 20.0
+"""Per-pixel SNR a level needs to count in the predicted range."""
+
+RAMP_FRACTION = 0.9
+"""The part of the cycle the designed rigs integrate (ramps and hold); the rest returns."""
+
+N_KNOTS = 512
+"""Knots per log-linear ramp: within 2e-5 (relative) of the exact exponential."""
+
+
+def sequential_rig(*, period_us: int, l_const: float, a: float, b: float,
+                   floor_1: float = 1e-3, floor_2: float = 1e-3, k_lens: float = 1.0,
+                   ramp_fraction: float = RAMP_FRACTION, n_knots: int = N_KNOTS) -> Rig:
+    """The ``sequential`` rig of the module docstring: ``T1`` log-linear from ``floor_1`` to
+    1 over phase ``[0, a]`` (``T2 = 1``); ``T2`` log-linear from 1 to ``floor_2`` over
+    ``[a, b]`` (``T1 = 1``); hold to ``ramp_fraction``; return over half the rest; hold."""
+    if not 0.0 < a < b <= ramp_fraction < 1.0:
+        raise ValueError(f"sequential rig: need 0 < a < b <= ramp_fraction < 1, got a={a}, "
+                         f"b={b}, ramp_fraction={ramp_fraction}")
+    s = np.linspace(0.0, 1.0, n_knots + 1)
+    ph = [s * a, a + s[1:] * (b - a)]
+    v1 = [floor_1 ** (1.0 - s), np.ones(n_knots)]
+    v2 = [np.ones(n_knots + 1), floor_2 ** s[1:]]
+    settle = ramp_fraction + 0.5 * (1.0 - ramp_fraction)
+    tail = [ramp_fraction, settle, 1.0] if b < ramp_fraction else [settle, 1.0]
+    ph.append(np.array(tail))
+    v1.append(np.array([1.0, floor_1, floor_1][-len(tail):]))
+    v2.append(np.array([floor_2, 1.0, 1.0][-len(tail):]))
+    w1 = Waveform(np.concatenate(ph), np.concatenate(v1), name=f"sequential T1 {floor_1:g}->1")
+    w2 = Waveform(np.concatenate(ph), np.concatenate(v2), name=f"sequential T2 1->{floor_2:g}")
+    return Rig(period_us=int(period_us), ramp_fraction=ramp_fraction, l_const=float(l_const),
+               k_lens=k_lens, contrast_ratio_1=1.0 / floor_1, contrast_ratio_2=1.0 / floor_2,
+               t1=w1, t2=w2)
+
+
+@dataclass(frozen=True, eq=False)
+class DesignResult:
+    """A designed rig and what it is predicted to do.
+
+    Attributes
+    ----------
+    rig : the rig.
+    params : the design's parameters (``l_const``, ``a``, ``b``, floors, period).
+    levels : radiances evaluated (scene unit); ``snr_db`` their predicted per-pixel SNR.
+    range_db : the predicted dynamic range (longest run with ``snr_db >= min_snr_db``);
+        ``l_lo``, ``l_hi`` its ends.
+    candidates : every candidate tried, with its range.
+    """
+
+    rig: Rig
+    params: dict[str, float]
+    levels: np.ndarray
+    snr_db: np.ndarray
+    range_db: float
+    l_lo: float
+    l_hi: float
+    min_snr_db: float
+    sensor: SensorParams
+    candidates: list[dict[str, float]] = field(default_factory=list)
+
+    def summary(self) -> dict[str, Any]:
+        return {"params": self.params, "range_db": self.range_db, "l_lo": self.l_lo,
+                "l_hi": self.l_hi, "min_snr_db": self.min_snr_db, "sensor": self.sensor.name,
+                "levels": self.levels.tolist(), "snr_db": self.snr_db.tolist(),
+                "candidates": self.candidates}
+
+
+def _longest_run(levels: np.ndarray, ok: np.ndarray) -> tuple[float, float, float]:
+    best = (0.0, float("nan"), float("nan"))
+    i = 0
+    n = ok.size
+    while i < n:
+        if not ok[i]:
+            i += 1
+            continue
+        j = i
+        while j + 1 < n and ok[j + 1]:
+            j += 1
+        db = 20.0 * math.log10(levels[j] / levels[i]) if j > i else 0.0
+        if db > best[0] or math.isnan(best[1]):
+            best = (db, float(levels[i]), float(levels[j]))
+        i = j + 1
+    return best
+
+
+def predict(rig: Rig, sensor: SensorParams, *, levels: np.ndarray, pixels: int = 8,
+            rng: int = 0) -> np.ndarray:
+    """Predicted per-pixel SNR (dB) of ``ml`` at each radiance of ``levels``:
+    ``-20 log10`` of the median over ``pixels`` pixels of the Cramér-Rao bound on
+    ``ln L`` (:func:`asynhdr.ml.fisher_information`), evaluated on the events the sensor
+    fires without noise (reset noise, jitter and background off; its thresholds drawn
+    with their mismatch), with the noise of the real sensor in the model. Levels whose
+    pixels fire fewer than two events get ``-inf``."""
+    from asynhdr.ml import cached_model, fisher_information, thresholds_prior
+    from asynhdr.simulate import draw_thresholds, simulate
+
+    quiet = sensor.with_(name="quiet", reset_noise_sigma=0.0, jitter_sigma_us=0.0,
+                         leak_rate_hz=0.0, shot_noise_rate_hz=0.0, hot_pixel_fraction=0.0,
+                         dead_pixel_fraction=0.0, max_event_rate_hz=0.0)
+    lv = np.asarray(levels, dtype=np.float64)
+    scene = np.repeat(lv[:, None], pixels, axis=1)
+    h, w = scene.shape
+    c_on, c_off = draw_thresholds(sensor, width=w, height=h, rng=np.random.default_rng(rng))
+    rec = simulate(scene, rig=rig, sensor=quiet, n_cycles=2, rng=rng,
+                   thresholds=(c_on, c_off))
+    model = cached_model(rig, sensor, window_us=rig.ramp_us)
+    pri = thresholds_prior(sensor, width=w, height=h, c_on=c_on, c_off=c_off, sigma=0.002)
+    sd = fisher_information(rec.events, width=w, height=h, start_us=int(rig.period_us),
+                            model=model, priors=pri, log_radiance=np.log(scene))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        med = np.nanmedian(np.where(np.isfinite(sd), sd, np.inf), axis=1)
+        return np.where(np.isfinite(med), -20.0 * np.log10(med), -np.inf)
+
+
+def design(
+    sensor: SensorParams | str,
+    *,
+    l_min: float = DEFAULT_SCENE_RANGE[0],
+    l_max: float = DEFAULT_SCENE_RANGE[1],
+    frame_rate_hz: float = DEFAULT_FRAME_RATE_HZ,
+    contrast_ratio: float = 1000.0,
+    min_snr_db: float = DEFAULT_MIN_SNR_DB,
+    l_consts: Sequence[float] | None = None,
+    splits: Sequence[tuple[float, float]] = ((0.2, 0.55), (0.25, 0.65), (0.3, 0.8),
+                                            (0.35, 0.9), (0.2, 0.9)),
+    n_levels: int = 27,
+    progress: Callable[[int, int], None] | None = None,
+) -> DesignResult:
+    """Choose the sequential rig (module docstring) with the widest predicted range.
+
+    Parameters
+    ----------
+    sensor : the pixel model (a preset name or parameters).
+    l_min, l_max : the scene's radiance range (the rig's unit, lux).
+    frame_rate_hz : cycles per second; the cycle is ``1e6 / frame_rate_hz`` µs.
+    contrast_ratio : both panels' open/closed ratio (their floors are its inverse).
+    min_snr_db : per-pixel SNR a level needs to count.
+    l_consts : reference radiances tried (default: eight from ``sqrt(l_min l_max) / 30``
+        to ``l_max / contrast_ratio x 10``, geometric).
+    splits : ``(a, b)`` phases tried (end of the scene ramp, end of the reference ramp).
+    n_levels : radiances evaluated, log-spaced over ``[l_min, l_max]``.
+    """
+    sensor = get_preset(sensor) if isinstance(sensor, str) else sensor
+    if not (0 < l_min < l_max and math.isfinite(l_max)):
+        raise ValueError(f"design: need 0 < l_min < l_max, got {l_min}, {l_max}")
+    if not (frame_rate_hz > 0 and math.isfinite(frame_rate_hz)):
+        raise ValueError(f"design: frame_rate_hz must be positive, got {frame_rate_hz}")
+    period = round(1e6 / frame_rate_hz)
+    levels = np.geomspace(l_min, l_max, n_levels)
+    if l_consts is None:
+        lo = max(l_max / contrast_ratio / 3.0, math.sqrt(l_min * l_max) / 30.0)
+        hi = max(l_max / contrast_ratio * 10.0, lo * 2)
+        l_consts = [float(x) for x in np.geomspace(lo, hi, 8)]
+    floor = 1.0 / contrast_ratio
+    tried: list[dict[str, float]] = []
+    best: tuple[float, float, Rig, dict[str, float], np.ndarray] | None = None
+    total = len(l_consts) * len(splits)
+    k = 0
+    for lc in l_consts:
+        for a, b in splits:
+            rig = sequential_rig(period_us=period, l_const=lc, a=a, b=b, floor_1=floor,
+                                 floor_2=floor)
+            snr = predict(rig, sensor, levels=levels)
+            db, lo_, hi_ = _longest_run(levels, snr >= min_snr_db)
+            mean_snr = float(np.mean(snr[(levels >= lo_) & (levels <= hi_)])) if db > 0 else 0.0
+            params = {"l_const": lc, "a": a, "b": b, "floor_1": floor, "floor_2": floor,
+                      "period_us": float(period)}
+            tried.append(dict(params, range_db=db, mean_snr_db=mean_snr))
+            key = (db, mean_snr)
+            if best is None or key > (best[0], best[1]):
+                best = (db, mean_snr, rig, params, snr)
+            k += 1
+            if progress is not None:
+                progress(k, total)
+            logger.info("design %s: L_const %.4g a %.2f b %.2f -> %.1f dB", sensor.name, lc,
+                        a, b, db)
+    assert best is not None
+    db, _, rig, params, snr = best
+    _, lo_, hi_ = _longest_run(levels, snr >= min_snr_db)
+    return DesignResult(rig=rig, params=params, levels=levels, snr_db=snr, range_db=db,
+                        l_lo=lo_, l_hi=hi_, min_snr_db=min_snr_db, sensor=sensor,
+                        candidates=tried)
+
+
+DESIGNED: dict[str, dict[str, float]] = {
+    # asynhdr design --preset NAME (defaults: 0.1 to 316,000 lux, 20 cycles/s, 1000:1
+    # panels, per-pixel SNR >= 20 dB); predicted range in the comment
+    "ideal": {"l_const": 278.55655932390493, "a": 0.35, "b": 0.9},  # 130 dB
+    "v2e": {"l_const": 452.8253292719891, "a": 0.35, "b": 0.9},  # 130 dB
+    "davis346": {"l_const": 3162.277660168379, "a": 0.3, "b": 0.8},  # 95 dB
+    "imx636": {"l_const": 1196.6450696489756, "a": 0.2, "b": 0.55},  # 95 dB
+}
+"""The CLI's default rig per sensor preset, as ``asynhdr design --preset NAME`` chose it
+for the default scene range (:data:`DEFAULT_SCENE_RANGE`), 20 cycles per second and
+1000:1 panels (docs/design.md lists the predicted ranges)."""
+
+
+def default_rig(preset: str, *, period_us: int | None = None) -> Rig:
+    """The designed rig of :data:`DESIGNED` for ``preset`` (a preset without an entry gets
+    the ``v2e`` one)."""
+    p = DESIGNED.get(preset, DESIGNED["v2e"])
+    period = round(1e6 / DEFAULT_FRAME_RATE_HZ) if period_us is None else int(period_us)
+    return sequential_rig(period_us=period,
+                          l_const=p["l_const"], a=p["a"], b=p["b"])

@@ -1,0 +1,1120 @@
+"""Maximum-likelihood radiance from each pixel's events, under the simulator's own model.
+
+The forward model is the one of :mod:`asynhdr.sensor.pixel`: a pixel's comparator reads
+its signal ``V(t; g)`` (``g = ln L``), the log irradiance
+``ln(k_lens (T1(t) L + T2(t) L_const))`` of the rig's *transmitted* waveforms (panels
+included), or the photoreceptor's low-pass output of it
+(:mod:`asynhdr.sensor.photoreceptor`, the same integrator, tabulated here over a
+log-radiance grid). An event fires when ``V`` leaves the band ``(ref - c_off, ref + c_on)``
+around the pixel's reference; its timestamp is ``floor(t_c + jitter + latency)``; the
+reference is then taken at the end of the dead time, ``t_e = t_f + latency + refractory``,
+with reset noise (or, for a pixel without dead time, moves to the level crossed).
+
+Per pixel and cycle the events ``(t_i, p_i)`` give one equation each, conditional on the
+previous event (the chain the pixel itself follows)::
+
+    r_i = V(t_c,i; g) - ref_i - p_i c_{p_i}  ~  N(0, s_i^2)
+
+    t_c,i = t_i + res/2 - latency                  (the crossing, from the stamp)
+    ref_i = V(t_e,i-1; g)                          (dead time: t_e = t_i-1 + res/2 + refractory)
+    ref_i = V(0; g) + u + sum_{k<i} p_k c_{p_k}    (no dead time: the level walks by c)
+    ref_1 = V(0; g) + u                            (the first event of the cycle)
+    s_i^2 = sigma_reset^2 (i for the walk) + V'(t_c,i)^2 (sigma_jitter^2 + res^2/12)
+            + V'(t_e,i-1)^2 res^2 / 12
+
+``u`` is where the reference stood at the cycle's start relative to ``V(0)`` (unknown:
+a prior uniform over ``(-c_on, c_off)``, used as a Gaussian of the same mean and
+variance). The thresholds are parameters too, with the calibrated (or nominal) values as
+Gaussian priors of their stated spread: the fit is over ``theta = (g, u, c_on, c_off)``,
+by Gauss-Newton (iteratively reweighted least squares), from a start found by a
+bracketing root search on ``sum_i r_i(g)`` (each ``r_i`` rises with ``g`` during a ramp).
+Background events (leak, shot noise) are outliers at their rate ``lambda`` (per µs): an
+event's weight is the posterior probability that it is signal,
+``f_i / (f_i + lambda)`` with ``f_i = phi(r_i / s_i) |V'(t_c,i)| / s_i`` the signal's
+density in time. Such an event still resets the pixel, which the chain keeps.
+
+The image is ``L = exp(g_hat)`` in the scene's unit; the uncertainty is the standard
+deviation of ``g_hat`` from the inverse of the information matrix at the estimate
+(thresholds and ``u`` marginalised), the Cramér-Rao bound of this model for this pixel's
+events. :func:`fisher_information` evaluates the same matrix at a given ``g`` (the
+truth, on the noiseless event sequence): the bound to compare the estimator's variance
+with.
+
+What is approximate, and stated as such: ``s_i`` is held at the current estimate in each
+step (the dependence of the noise on ``g`` through ``V'`` is not differentiated); the
+density's Jacobian ``|V'(t_c)|`` enters the outlier weights only; the walk's reset noise
+is taken as independent per event; the prior on ``u`` is Gaussian, not uniform; the
+photoreceptor's state at the cycle start is the periodic steady state (two cycles
+integrated); the readout's queueing delays (the arbiter) and hot pixels are not modelled;
+crossings that the jitter clamps to the end of a dead time are treated as unclamped.
+
+Pixels without events carry no information: NaN, flag :data:`FLAG_NO_EVENTS`. Pixels
+whose estimate leaves the model's radiance range are flagged :data:`FLAG_OUT_OF_RANGE`
+and set to NaN too (the bound is printed in the log, not the image).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numba as nb
+import numpy as np
+
+from asynhdr.events import Recording
+from asynhdr.rig import Rig
+from asynhdr.sensor.params import SensorParams
+from asynhdr.sensor.photoreceptor import Lowpass, lowpass_rows, time_grid
+
+__all__ = [
+    "DEFAULT_DLOG",
+    "FLAG_NO_EVENTS",
+    "FLAG_OUT_OF_RANGE",
+    "MlModel",
+    "MlResult",
+    "cached_model",
+    "estimate",
+    "fisher_information",
+    "group_by_pixel",
+    "ml_model",
+    "reconstruct_ml",
+    "sensor_of",
+    "thresholds_prior",
+]
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_DLOG = 0.04
+"""Step (natural log of radiance) of the grid on which the photoreceptor output is
+tabulated for ``ml``. Linear interpolation between rows errs by at most
+``dlog^2 / 8 max|d^2 V / dg^2| <= dlog^2 / 32`` (5e-5 log units here), far below a
+threshold."""
+
+RANGE_MARGIN = 100.0
+"""The model's radiance range reaches this factor beyond ``L_const min(T2) / max(T1)`` and
+``L_const max(T2) / min(T1)``: pixels further out carry no usable timing."""
+
+FLAG_NO_EVENTS = 1
+"""Flag: the pixel fired fewer than ``min_events`` events in the window (two by default:
+the first event's reference is unknown, so one event only bounds the radiance): NaN."""
+FLAG_OUT_OF_RANGE = 2
+"""Flag: the estimate left the model's radiance range: NaN."""
+
+_MAX_ITER = 16
+_TOL_G = 1e-3
+_MAX_STEP_G = 1.0
+_BLOCK = 256
+_CHI2_RESCUE = 4.0
+_OUTLIER_Z2 = 16.0
+_OUTLIER_PENALTY = 12.0
+_SCAN_STEP = 0.2
+
+
+@dataclass(frozen=True, eq=False)
+class MlModel:
+    """Everything the estimator needs of the rig and the sensor, tabulated per whole µs of
+    the window.
+
+    Attributes
+    ----------
+    window_us : length of the window (µs from the cycle start) the tables cover.
+    mode : 0: the exact log irradiance (no photoreceptor low-pass); 1: tabulated low-pass.
+    g_lo, g_hi : the model's range of ``g = ln L``.
+    dead : True when the pixel has a dead time (latency or refractory > 0, or jitter):
+        the reference is taken at the end of each dead time; else it walks by ``c``.
+    reset_sigma, jitter_us, res_us : reset noise (log), jitter (µs), timestamp quantum (µs).
+    noise_rate_per_us : background events per pixel per µs (outlier rate).
+    exact : ``(8, W)`` float64 per-µs rows for mode 0: ``a1, b2, da1, db2`` at the crossing
+        time ``m + res/2 - latency`` and at the dead time's end ``m + res/2 + refractory``
+        (``a1 = k_lens T1``, ``b2 = k_lens L_const T2``, ``d`` per µs).
+    v0 : ``(a1, b2)`` at the cycle start (mode 0).
+    rows : ``(K, n_rows, 2)`` float32 photoreceptor output at grid time ``s_k`` for grid
+        value ``g_j = g0 + j dlog``, and its increment to ``s_{k+1}`` (mode 1).
+    locate : ``(4, W)`` float64 for mode 1: grid interval and fraction at the crossing
+        time and at the dead time's end; ``inv_h`` ``1 / (s[k+1] - s[k])``.
+    net_g, net_v : the model's net change of ``V`` over the window, ``net_v``, at
+        ``g = net_g`` (made non-decreasing): the fit's starting point.
+    """
+
+    window_us: int
+    mode: int
+    g_lo: float
+    g_hi: float
+    dead: bool
+    reset_sigma: float
+    jitter_us: float
+    res_us: float
+    noise_rate_per_us: float
+    exact: np.ndarray
+    v0: tuple[float, float]
+    rows: np.ndarray
+    g0: float
+    dlog: float
+    locate: np.ndarray
+    inv_h: np.ndarray
+    net_g: np.ndarray
+    net_v: np.ndarray
+    description: str = ""
+
+    @property
+    def n_bytes(self) -> int:
+        return int(self.exact.nbytes + self.rows.nbytes + self.locate.nbytes)
+
+
+def _noise_rate_hz(sensor: SensorParams) -> float:
+    """Background events per pixel per second: leak plus shot noise at its mid rate."""
+    shot = sensor.shot_noise_rate_hz * 0.5 * (1.0 + sensor.shot_noise_bright_factor)
+    return float(sensor.leak_rate_hz + shot)
+
+
+def _rising(v: np.ndarray) -> np.ndarray:
+    """``v`` made strictly increasing (a running maximum plus a tiny ramp)."""
+    return np.maximum.accumulate(np.asarray(v, dtype=np.float64)) + 1e-9 * np.arange(v.size)
+
+
+def ml_model(rig: Rig, sensor: SensorParams, *, window_us: float | None = None,
+             dlog: float = DEFAULT_DLOG, g_range: tuple[float, float] | None = None,
+             dt_us: float | None = None, from_rest: bool = False) -> MlModel:
+    """Tabulate the forward model of ``rig`` and ``sensor`` over a window of the cycle.
+
+    ``window_us`` defaults to the ramp; ``g_range`` (``ln L`` bounds) to the rig's range
+    widened by :data:`RANGE_MARGIN`; ``dt_us`` (the low-pass grid) to the simulator's.
+    ``from_rest``: the photoreceptor starts the cycle settled at its input (a single ramp
+    from rest, or the first cycle of a simulation) instead of in the periodic steady state.
+    """
+    from asynhdr.sensor.photoreceptor import DEFAULT_DT_US
+
+    period = float(rig.period_us)
+    w_us = math.ceil(window_us if window_us is not None else rig.ramp_us)
+    w_us = max(1, min(w_us, int(rig.period_us)))
+    w1, w2 = rig.waveforms()
+    knots = np.union1d(w1.phase, w2.phase)
+    t1v, t2v = w1(knots), w2(knots)
+    if g_range is None:
+        lo = rig.l_const * float(t2v.min()) / float(t1v.max()) / RANGE_MARGIN
+        hi = rig.l_const * float(t2v.max()) / max(float(t1v.min()), 1e-12) * RANGE_MARGIN
+        g_range = (math.log(lo), math.log(hi))
+    g_lo, g_hi = float(g_range[0]), float(g_range[1])
+    if not g_hi > g_lo:
+        raise ValueError(f"ml: empty radiance range {g_range}")
+    res = float(sensor.timestamp_resolution_us)
+    lat = float(sensor.latency_us)
+    refr = float(sensor.refractory_us)
+    m = np.arange(w_us, dtype=np.float64)
+    tc = np.clip(m + 0.5 * res - lat, 0.0, period)
+    te = np.clip(m + 0.5 * res + refr, 0.0, period)
+    dead = lat > 0 or refr > 0 or sensor.jitter_sigma_us > 0
+    kl, lc = rig.k_lens, rig.l_const
+    ks = knots * period
+    a1k = kl * t1v
+    b2k = kl * lc * t2v
+    with np.errstate(divide="ignore", invalid="ignore"):
+        da1k = np.diff(a1k) / np.diff(ks)
+        db2k = np.diff(b2k) / np.diff(ks)
+
+    def slope(d: np.ndarray, t: np.ndarray) -> np.ndarray:
+        j = np.clip(np.searchsorted(ks, t, side="right") - 1, 0, d.size - 1)
+        return d[j]
+
+    exact = np.stack([np.interp(tc, ks, a1k), np.interp(tc, ks, b2k), slope(da1k, tc),
+                      slope(db2k, tc), np.interp(te, ks, a1k), np.interp(te, ks, b2k),
+                      slope(da1k, te), slope(db2k, te)])
+    v0 = (float(a1k[0]), float(b2k[0]))
+    common = dict(window_us=w_us, g_lo=g_lo, g_hi=g_hi, dead=dead,
+                  reset_sigma=float(sensor.reset_noise_sigma),
+                  jitter_us=float(sensor.jitter_sigma_us), res_us=res,
+                  noise_rate_per_us=_noise_rate_hz(sensor) * 1e-6, exact=exact, v0=v0)
+    if sensor.cutoff_hz <= 0:
+        ng = np.linspace(g_lo, g_hi, 512)
+        e = np.exp(ng)
+        nv = np.log(exact[0, -1] * e + exact[1, -1]) - np.log(v0[0] * e + v0[1])
+        return MlModel(mode=0, rows=np.zeros((2, 2, 2), np.float32), g0=g_lo, dlog=1.0,
+                       locate=np.zeros((4, 1)), inv_h=np.zeros(1), net_g=ng,
+                       net_v=_rising(nv), description="exact log irradiance",
+                       **common)  # type: ignore[arg-type]
+    if not (dlog > 0 and math.isfinite(dlog)):
+        raise ValueError(f"ml: dlog must be positive, got {dlog}")
+    lp = Lowpass(sensor.tau_ref_us * (sensor.cutoff_irradiance + sensor.dark_irradiance),
+                 sensor.dark_irradiance, sensor.tau_max_us)
+    n_rows = math.ceil((g_hi - g_lo) / dlog) + 2
+    grid = np.exp(g_lo + dlog * np.arange(n_rows))
+    i_max = kl * (float(grid[-1]) * float(t1v.max()) + lc * float(t2v.max()))
+    tau_min = min(lp.tau_num / (i_max + lp.dark_irradiance), lp.tau_max_us)
+    s = time_grid(knots, t1v, t2v, period_us=period,
+                  dt_us=DEFAULT_DT_US if dt_us is None else dt_us, tau_min_us=tau_min)
+    u = s / period
+    a1 = kl * w1(u)
+    b2 = kl * lc * w2(u)
+    # the periodic steady state: one cycle from rest, then the cycle that is kept
+    y0 = np.log(a1[0] * grid + b2[0])
+    rows, y_end = lowpass_rows(grid, a1, b2, s, y0, lp)
+    if not from_rest:
+        rows, _ = lowpass_rows(grid, a1, b2, s, y_end, lp)
+    kmax = s.size - 2
+
+    def loc(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        k = np.clip(np.searchsorted(s, t, side="right") - 1, 0, kmax)
+        f = np.clip((t - s[k]) / (s[k + 1] - s[k]), 0.0, 1.0)
+        return k.astype(np.float64), f
+
+    kc, fc = loc(tc)
+    ke, fe = loc(te)
+    # time-major, value and increment to the next grid time side by side: one evaluation
+    # reads 16 neighbouring bytes
+    tab = np.empty((s.size, n_rows, 2), dtype=np.float32)
+    tab[:, :, 0] = rows.T
+    tab[:-1, :, 1] = np.diff(rows, axis=1).T
+    tab[-1, :, 1] = 0.0
+    k_end = int(kc[-1])
+    nv = (rows[:, k_end] + fc[-1] * (rows[:, k_end + 1] - rows[:, k_end])) - rows[:, 0]
+    return MlModel(mode=1, rows=tab, g0=g_lo, dlog=float(dlog),
+                   locate=np.stack([kc, fc, ke, fe]), inv_h=1.0 / np.diff(s),
+                   net_g=g_lo + dlog * np.arange(n_rows), net_v=_rising(nv),
+                   description=f"photoreceptor low-pass tabulated ({n_rows} radiances x "
+                   f"{s.size} times)", **common)  # type: ignore[arg-type]
+
+
+# ----------------------------------------------------------------------------- model values
+
+
+@nb.njit(cache=True, inline="always")
+def _eval(mode, g, m, end, exact, v0a, v0b, rows, g0, dlog, locate, inv_h):
+    """``(V, dV/dg, dV/dt)`` at whole µs slot ``m`` (``end``: the dead time's end; ``m < 0``:
+    the cycle start) for ``g = ln L``."""
+    if mode == 0:
+        e = math.exp(g)
+        if m < 0:
+            irr = v0a * e + v0b
+            return math.log(irr), v0a * e / irr, 0.0
+        o = 4 if end else 0
+        a = exact[o, m]
+        b = exact[o + 1, m]
+        irr = a * e + b
+        return math.log(irr), a * e / irr, (exact[o + 2, m] * e + exact[o + 3, m]) / irr
+    x = (g - g0) / dlog
+    nr = rows.shape[1]
+    j = int(math.floor(x))  # noqa: RUF046 (numba)
+    if j < 0:
+        j = 0
+    elif j > nr - 2:
+        j = nr - 2
+    w = x - j
+    if m < 0:
+        va = rows[0, j, 0]
+        vb = rows[0, j + 1, 0]
+        return va + w * (vb - va), (vb - va) / dlog, 0.0
+    o = 2 if end else 0
+    k = int(locate[o, m])
+    f = locate[o + 1, m]
+    da = rows[k, j, 1]
+    db = rows[k, j + 1, 1]
+    va = rows[k, j, 0] + f * da
+    vb = rows[k, j + 1, 0] + f * db
+    return va + w * (vb - va), (vb - va) / dlog, (da + w * (db - da)) * inv_h[k]
+
+
+@nb.njit(cache=True, inline="always")
+def _moment(mode, g, t, p, lo, hi, dead, con, coff, u, exact, v0a, v0b, rows, g0, dlog,
+            locate, inv_h, wmax, skip, skip2):
+    """``sum_i r_i(g)`` at fixed thresholds and ``u``: rises with ``g`` during a ramp. With a
+    dead time the first event is left out (its reference, ``u``, is unknown), unless it
+    is the only one. Event ``skip`` is a background event (see :func:`_normal`)."""
+    acc = 0.0
+    vs, _, _ = _eval(mode, g, -1, False, exact, v0a, v0b, rows, g0, dlog, locate, inv_h)
+    level = 0.0
+    base = vs + u
+    prev = -1
+    for i in range(lo, hi):
+        m = t[i]
+        if m >= wmax:
+            m = wmax - 1
+        vc, _, _ = _eval(mode, g, m, False, exact, v0a, v0b, rows, g0, dlog, locate, inv_h)
+        if i == skip or i == skip2:
+            prev = m
+            base = vc
+            level = 0.0
+            continue
+        step = con if p[i] > 0 else -coff
+        if dead:
+            if prev < 0:
+                if hi - lo == 1:
+                    acc += vc - vs - u - step
+            else:
+                ref, _, _ = _eval(mode, g, prev, True, exact, v0a, v0b, rows, g0, dlog,
+                                  locate, inv_h)
+                acc += vc - ref - step
+            prev = m
+        else:
+            level += step
+            acc += vc - base - level
+    return acc
+
+
+@nb.njit(cache=True, inline="always")
+def _solve4(h, b, x, lmat, y, z):
+    """Solve the symmetric positive-definite ``h x = b`` (4x4, Cholesky; ``lmat``, ``y``,
+    ``z`` are work space); also returns ``(h^-1)[0, 0]``. False when ``h`` is not positive
+    definite."""
+    for i in range(4):
+        for j in range(i + 1):
+            s = h[i, j]
+            for k in range(j):
+                s -= lmat[i, k] * lmat[j, k]
+            if i == j:
+                if s <= 0.0:
+                    return False, 0.0
+                lmat[i, i] = math.sqrt(s)
+            else:
+                lmat[i, j] = s / lmat[j, j]
+    for i in range(4):
+        s = b[i]
+        for k in range(i):
+            s -= lmat[i, k] * y[k]
+        y[i] = s / lmat[i, i]
+    for i in range(3, -1, -1):
+        s = y[i]
+        for k in range(i + 1, 4):
+            s -= lmat[k, i] * x[k]
+        x[i] = s / lmat[i, i]
+    # (h^-1)[0,0] = || L^-1 e_0 ||^2
+    for i in range(4):
+        s = 1.0 if i == 0 else 0.0
+        for k in range(i):
+            s -= lmat[i, k] * z[k]
+        z[i] = s / lmat[i, i]
+    v00 = 0.0
+    for i in range(4):
+        v00 += z[i] * z[i]
+    return True, v00
+
+
+@nb.njit(cache=True, inline="always")
+def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
+            rows, g0, dlog, locate, inv_h, wmax, h, b, first_var, skip, skip2, stat):
+    """Accumulate the Gauss-Newton normal equations of the events ``lo..hi`` at
+    ``theta = (g, u, c_on, c_off)`` into ``h`` and ``b`` (``b = -sum w r J``); returns
+    ``chi2 = sum w r^2``. ``first_var`` is added to the variance of the equations that hold
+    ``u`` (a scan at fixed ``u`` gives them the prior's spread). Event ``skip`` is taken
+    for a background event: no equation of its own, but it resets the pixel (the walk of
+    a pixel without dead time restarts at its level). ``stat`` receives the largest
+    ``(r / s)^2``, the index of its event, the unweighted chi-square and the number of
+    events the outlier weights take for signal."""
+    chi2 = 0.0
+    vs, dgs, _ = _eval(mode, g, -1, False, exact, v0a, v0b, rows, g0, dlog, locate, inv_h)
+    n_on = 0.0
+    n_off = 0.0
+    prev = -1
+    k_ev = 0
+    base = vs
+    dbase = dgs
+    has_u = 1.0
+    stat[0] = 0.0
+    stat[1] = -1.0
+    stat[2] = 0.0
+    stat[3] = 0.0
+    for i in range(lo, hi):
+        m = t[i]
+        if m >= wmax:
+            m = wmax - 1
+        vc, dgc, dtc = _eval(mode, g, m, False, exact, v0a, v0b, rows, g0, dlog, locate,
+                             inv_h)
+        if i == skip or i == skip2:
+            if dead:
+                prev = m
+            else:
+                base = vc
+                dbase = dgc
+                has_u = 0.0
+                n_on = 0.0
+                n_off = 0.0
+                k_ev = 0
+            continue
+        k_ev += 1
+        j0 = 0.0
+        j1 = 0.0
+        j2 = 0.0
+        j3 = 0.0
+        if dead:
+            if prev < 0:
+                ref = vs + uu
+                dref = dgs
+                j1 = -1.0
+                var = sr2 + dtc * dtc * tq2 + first_var
+            else:
+                ref, dref, dte = _eval(mode, g, prev, True, exact, v0a, v0b, rows, g0, dlog,
+                                       locate, inv_h)
+                var = sr2 + dtc * dtc * tq2 + dte * dte * eq2
+            if p[i] > 0:
+                r = vc - ref - con
+                j2 = -1.0
+            else:
+                r = vc - ref + coff
+                j3 = 1.0
+            j0 = dgc - dref
+            prev = m
+        else:
+            if p[i] > 0:
+                n_on += 1.0
+            else:
+                n_off += 1.0
+            r = vc - base - has_u * uu - (con * n_on - coff * n_off)
+            j0 = dgc - dbase
+            j1 = -has_u
+            j2 = -n_on
+            j3 = n_off
+            var = sr2 * k_ev + dtc * dtc * tq2 + has_u * first_var
+        if var < 1e-12:
+            var = 1e-12
+        w = 1.0 / var
+        z2 = r * r * w
+        stat[2] += z2
+        if z2 > stat[0]:
+            stat[0] = z2
+            stat[1] = i
+        if lam > 0.0:
+            sd = math.sqrt(var)
+            f = math.exp(-0.5 * z2) * abs(dtc) / (sd * 2.5066282746310002)
+            gam = f / (f + lam)
+            w *= gam
+            stat[3] += gam
+        else:
+            stat[3] += 1.0
+        wr = w * r
+        chi2 += wr * r
+        b[0] -= wr * j0
+        b[1] -= wr * j1
+        b[2] -= wr * j2
+        b[3] -= wr * j3
+        w0 = w * j0
+        h[0, 0] += w0 * j0
+        h[1, 0] += w0 * j1
+        h[2, 0] += w0 * j2
+        h[3, 0] += w0 * j3
+        w1 = w * j1
+        h[1, 1] += w1 * j1
+        h[2, 1] += w1 * j2
+        h[3, 1] += w1 * j3
+        w2 = w * j2
+        h[2, 2] += w2 * j2
+        h[3, 2] += w2 * j3
+        h[3, 3] += w * j3 * j3
+    return chi2
+
+
+@nb.njit(cache=True, inline="always")
+def _initial(net, net_g, net_v):
+    """``g`` where the model's net level change over the window, ``net_v`` (rising along
+    ``net_g``), equals ``net`` (linear interpolation, clamped)."""
+    n = net_g.shape[0]
+    if net <= net_v[0]:
+        return net_g[0]
+    if net >= net_v[n - 1]:
+        return net_g[n - 1]
+    lo = 0
+    hi = n - 1
+    while hi - lo > 1:
+        mid = (lo + hi) >> 1
+        if net_v[mid] <= net:
+            lo = mid
+        else:
+            hi = mid
+    d = net_v[hi] - net_v[lo]
+    f = (net - net_v[lo]) / d if d > 0.0 else 0.5
+    return net_g[lo] + f * (net_g[hi] - net_g[lo])
+
+
+@nb.njit(cache=True)
+def _start(lo, hi, t, p, mode, dead, exact, v0a, v0b, rows, g0, dlog, locate, inv_h, wmax,
+           g_lo, g_hi, net_g, net_v, c1, c2, mu_u, skip, skip2):
+    """The fit's starting ``g``: where the model's net level change matches the events';
+    then a bracket around it, widened until the moment sum changes sign, and false
+    position (Illinois) to 0.02."""
+    net = 0.0
+    for i in range(lo, hi):
+        if i != skip and i != skip2:
+            net += c1 if p[i] > 0 else -c2
+    g = _initial(net, net_g, net_v)
+    width = 0.25
+    a = max(g - width, g_lo)
+    bb = min(g + width, g_hi)
+    fa = _moment(mode, a, t, p, lo, hi, dead, c1, c2, mu_u, exact, v0a, v0b, rows, g0, dlog,
+                 locate, inv_h, wmax, skip, skip2)
+    fb = _moment(mode, bb, t, p, lo, hi, dead, c1, c2, mu_u, exact, v0a, v0b, rows, g0, dlog,
+                 locate, inv_h, wmax, skip, skip2)
+    while fa > 0.0 and a > g_lo:
+        bb = a
+        fb = fa
+        width *= 2.0
+        a = max(a - width, g_lo)
+        fa = _moment(mode, a, t, p, lo, hi, dead, c1, c2, mu_u, exact, v0a, v0b, rows, g0,
+                     dlog, locate, inv_h, wmax, skip, skip2)
+    while fb < 0.0 and bb < g_hi:
+        a = bb
+        fa = fb
+        width *= 2.0
+        bb = min(bb + width, g_hi)
+        fb = _moment(mode, bb, t, p, lo, hi, dead, c1, c2, mu_u, exact, v0a, v0b, rows, g0,
+                     dlog, locate, inv_h, wmax, skip, skip2)
+    if fa >= 0.0:
+        return a
+    if fb <= 0.0:
+        return bb
+    side = 0
+    for _ in range(40):
+        g = (a * fb - bb * fa) / (fb - fa)
+        if bb - a < 0.02:
+            break
+        fg = _moment(mode, g, t, p, lo, hi, dead, c1, c2, mu_u, exact, v0a, v0b, rows, g0,
+                     dlog, locate, inv_h, wmax, skip, skip2)
+        if fg > 0.0:
+            bb = g
+            fb = fg
+            if side == -1:
+                fa *= 0.5
+            side = -1
+        else:
+            a = g
+            fa = fg
+            if side == 1:
+                fb *= 0.5
+            side = 1
+    return g
+
+
+@nb.njit(cache=True)
+def _gauss_newton(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
+                  g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp,
+                  n_iter, skip, skip2, h, bvec, x, lmat, wy, wz, stat, res):
+    """Gauss-Newton from ``g``: plain least squares until converged (or half the
+    iterations), then with the outlier weights. ``res`` gets ``(g, var_g, u, c_on, c_off,
+    chi2)``; ``stat`` the last pass's largest ``z^2``, its event and the unweighted chi2."""
+    uu = mu_u
+    cc1 = c1
+    cc2 = c2
+    v00 = np.nan
+    chi2 = 0.0
+    robust = lam <= 0.0
+    for it in range(n_iter + 1):
+        h[:, :] = 0.0
+        bvec[:] = 0.0
+        chi2 = _normal(mode, g, uu, cc1, cc2, t, p, lo, hi, dead, sr2, tq2, eq2,
+                       lam if robust else 0.0, exact, v0a, v0b, rows, g0, dlog, locate, inv_h,
+                       wmax, h, bvec, 0.0, skip, skip2, stat)
+        h[1, 1] += 1.0 / (su * su)
+        bvec[1] += (mu_u - uu) / (su * su)
+        h[2, 2] += 1.0 / (s1 * s1)
+        bvec[2] += (c1 - cc1) / (s1 * s1)
+        h[3, 3] += 1.0 / (s2 * s2)
+        bvec[3] += (c2 - cc2) / (s2 * s2)
+        if sgp > 0.0:
+            h[0, 0] += 1.0 / (sgp * sgp)
+            bvec[0] += (gp - g) / (sgp * sgp)
+        for a2 in range(4):
+            for c in range(a2 + 1, 4):
+                h[a2, c] = h[c, a2]
+        h[0, 0] += 1e-12
+        ok, v00 = _solve4(h, bvec, x, lmat, wy, wz)
+        if not ok:
+            v00 = np.nan
+            break
+        if it == n_iter:
+            break
+        dg = min(max(x[0], -_MAX_STEP_G), _MAX_STEP_G)
+        gn = min(max(g + dg, g_lo), g_hi)
+        uu += x[1]
+        cc1 = max(cc1 + x[2], 1e-3)
+        cc2 = max(cc2 + x[3], 1e-3)
+        done = abs(gn - g) < _TOL_G
+        g = gn
+        if done or it == n_iter // 2 - 1:
+            if robust:
+                break  # the variance from this last matrix, a step of < _TOL_G away
+            robust = True
+    res[0] = g
+    res[1] = v00
+    res[2] = uu
+    res[3] = cc1
+    res[4] = cc2
+    res[5] = chi2
+
+
+@nb.njit(cache=True)
+def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
+               dlog, locate, inv_h, wmax, g_lo, g_hi, net_g, net_v, c1, c2, s1, s2, gp, sgp,
+               fixed, h, bvec, x, lmat, wy, wz, out, u_sd, stat, res):
+    """One pixel (module docstring). Writes ``(g, sd, c_on, c_off, flag)`` into ``out``.
+    ``u_sd > 0``: the pixel starts settled at its reference (``u ~ N(0, u_sd^2)``).
+    ``stat`` (4) and ``res`` (6) are work space.
+
+    The fit: a start (:func:`_start`), Gauss-Newton; a coarse scan when the fit is poor;
+    and, when background events are modelled, the same again with the worst event taken
+    for a background event, kept when its fit is better by more than the price of one
+    such event (:data:`_OUTLIER_PENALTY` in chi-square units)."""
+    su = (c1 + c2) / math.sqrt(12.0)
+    mu_u = 0.5 * (c2 - c1)
+    if u_sd > 0.0:
+        su = u_sd
+        mu_u = 0.0
+    if fixed:
+        _gauss_newton(gp, lo, hi, t, p, mode, dead, sr2, tq2, eq2, 0.0, exact, v0a, v0b, rows,
+                      g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp,
+                      sgp, 0, -1, -1, h, bvec, x, lmat, wy, wz, stat, res)
+        out[0] = gp
+        out[1] = math.sqrt(res[1]) if res[1] == res[1] and res[1] >= 0.0 else np.nan
+        out[2] = c1
+        out[3] = c2
+        out[4] = 0.0
+        return
+    best_g = np.nan
+    best_v = np.nan
+    best_c1 = c1
+    best_c2 = c2
+    best_obj = np.inf
+    n = hi - lo
+    skip = -1
+    skip2 = -1
+    n_try = 1
+    cand = 0
+    collapsed = False
+    attempt = 0
+    while attempt < n_try:
+        if attempt > 0:
+            if collapsed:
+                skip = lo + cand
+            cand += 1
+        if 0.0 < sgp < 1e-3:
+            g = gp
+        else:
+            g = _start(lo, hi, t, p, mode, dead, exact, v0a, v0b, rows, g0, dlog, locate,
+                       inv_h, wmax, g_lo, g_hi, net_g, net_v, c1, c2, mu_u, skip, skip2)
+        _gauss_newton(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
+                      g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp,
+                      sgp, _MAX_ITER, skip, skip2, h, bvec, x, lmat, wy, wz, stat, res)
+        n_bg = (1 if skip >= 0 else 0) + (1 if skip2 >= 0 else 0)
+        n_eq = n - n_bg
+        if res[5] > _CHI2_RESCUE * n_eq + 2.0:
+            # a poor fit (a wrong local optimum): restart from the best of a coarse scan
+            # (coarse to fine: steps of 4 x _SCAN_STEP over the range, then _SCAN_STEP
+            # around the best)
+            best = np.inf
+            gbest = res[0]
+            for level in range(2):
+                step = _SCAN_STEP * (4.0 if level == 0 else 1.0)
+                a0 = g_lo if level == 0 else max(g_lo, gbest - 4.0 * _SCAN_STEP)
+                a1 = g_hi if level == 0 else min(g_hi, gbest + 4.0 * _SCAN_STEP)
+                gs = a0
+                while gs <= a1:
+                    h[:, :] = 0.0
+                    bvec[:] = 0.0
+                    cs = _normal(mode, gs, mu_u, c1, c2, t, p, lo, hi, dead, sr2, tq2, eq2,
+                                 0.0, exact, v0a, v0b, rows, g0, dlog, locate, inv_h, wmax, h,
+                                 bvec, su * su, skip, skip2, stat)
+                    if cs < best:
+                        best = cs
+                        gbest = gs
+                    gs += step
+            _gauss_newton(gbest, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
+                          v0b, rows, g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, s1,
+                          s2, su, mu_u, gp, sgp, _MAX_ITER, skip, skip2, h, bvec, x, lmat, wy, wz,
+                          stat, res)
+        # the unweighted objective of this hypothesis (stat from the last pass)
+        obj = stat[2] + ((res[3] - c1) / s1) ** 2 + ((res[4] - c2) / s2) ** 2 \
+            + ((res[2] - mu_u) / su) ** 2 + _OUTLIER_PENALTY * n_bg
+        improved = obj < best_obj
+        if improved:
+            best_obj = obj
+            best_g = res[0]
+            best_v = res[1]
+            best_c1 = res[3]
+            best_c2 = res[4]
+        if attempt == 0 and lam > 0.0 and n >= 3:
+            if stat[3] < 0.5 * n:
+                # the outlier weights took most events for background: a collapsed fit;
+                # try each event in turn as the background event
+                collapsed = True
+                n_try = 1 + n
+            elif stat[0] >= _OUTLIER_Z2 and stat[1] >= 0:
+                skip = int(stat[1])
+                n_try = 2
+        elif (attempt == n_try - 1 and not collapsed and skip >= 0 and skip2 < 0 and improved
+              and stat[0] >= _OUTLIER_Z2 and stat[1] >= 0 and n >= 5):
+            # a second background event in the same cycle
+            skip2 = int(stat[1])
+            n_try += 1
+        attempt += 1
+    flag = 0.0
+    if best_g <= g_lo + 1e-9 or best_g >= g_hi - 1e-9:
+        flag = 2.0
+    out[0] = best_g
+    out[1] = math.sqrt(best_v) if best_v == best_v and best_v >= 0.0 else np.nan
+    out[2] = best_c1
+    out[3] = best_c2
+    out[4] = flag
+
+
+@nb.njit(cache=True, parallel=True)
+def _estimate_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
+                     dlog, locate, inv_h, wmax, g_lo, g_hi, net_g, net_v, min_events, con0,
+                     coff0, scon, scoff, g_prior, sg_prior, fixed, out_g, out_sd, out_con,
+                     out_coff, out_flag, u_sd):
+    """Fit every pixel (module docstring), in blocks of ``_BLOCK`` per thread. ``fixed``:
+    evaluate the information at ``g_prior`` with no fit (the bound); ``sg_prior > 0``: a
+    Gaussian prior on ``g``."""
+    npx = off.shape[0] - 1
+    nblk = (npx + _BLOCK - 1) // _BLOCK
+    for blk in nb.prange(nblk):
+        h = np.zeros((4, 4))
+        bvec = np.zeros(4)
+        x = np.zeros(4)
+        lmat = np.zeros((4, 4))
+        wy = np.zeros(4)
+        wz = np.zeros(4)
+        res = np.zeros(5)
+        stat = np.zeros(4)
+        work = np.zeros(6)
+        for px in range(blk * _BLOCK, min(npx, (blk + 1) * _BLOCK)):
+            lo = off[px]
+            hi = off[px + 1]
+            if hi - lo < min_events:
+                out_g[px] = np.nan
+                out_sd[px] = np.nan
+                out_con[px] = con0[px]
+                out_coff[px] = coff0[px]
+                out_flag[px] = 1
+                continue
+            _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
+                       g0, dlog, locate, inv_h, wmax, g_lo, g_hi, net_g, net_v, con0[px],
+                       coff0[px], max(scon[px], 1e-6), max(scoff[px], 1e-6), g_prior[px],
+                       sg_prior[px], fixed, h, bvec, x, lmat, wy, wz, res, u_sd, stat, work)
+            out_g[px] = res[0]
+            out_sd[px] = res[1]
+            out_con[px] = res[2]
+            out_coff[px] = res[3]
+            out_flag[px] = np.uint8(res[4])
+
+
+# ----------------------------------------------------------------------------- grouping
+
+
+@nb.njit(cache=True)
+def _group_kernel(x, y, p, t, t0, t1, width, npx, off, out_t, out_p):
+    """Counting sort of the events with ``t0 <= t < t1`` by pixel (stable: time order
+    kept). ``off`` gets the per-pixel offsets; returns the number kept."""
+    cnt = np.zeros(npx + 1, np.int64)
+    n = 0
+    for i in range(t.shape[0]):
+        if t[i] >= t0 and t[i] < t1:
+            cnt[np.int64(y[i]) * width + x[i] + 1] += 1
+            n += 1
+    for j in range(npx):
+        cnt[j + 1] += cnt[j]
+    for j in range(npx + 1):
+        off[j] = cnt[j]
+    for i in range(t.shape[0]):
+        ti = t[i]
+        if ti >= t0 and ti < t1:
+            j = np.int64(y[i]) * width + x[i]
+            d = cnt[j]
+            out_t[d] = ti - t0
+            out_p[d] = p[i]
+            cnt[j] = d + 1
+    return n
+
+
+def group_by_pixel(events: np.ndarray, *, width: int, height: int, start_us: int,
+                   window_us: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The events of ``[start_us, start_us + window_us)`` grouped by pixel (time order kept
+    within a pixel): ``(offsets (n_pixels + 1,), t (µs from start_us, int64), p (int8))``."""
+    npx = width * height
+    off = np.empty(npx + 1, np.int64)
+    t = events["t"]
+    sel = int(np.count_nonzero((t >= start_us) & (t < start_us + window_us))) if t.size else 0
+    out_t = np.empty(sel, np.int64)
+    out_p = np.empty(sel, np.int8)
+    _group_kernel(events["x"], events["y"], events["p"], t, np.int64(start_us),
+                  np.int64(start_us + window_us), np.int64(width), np.int64(npx), off, out_t,
+                  out_p)
+    return off, out_t, out_p
+
+
+# ----------------------------------------------------------------------------- public
+
+
+@dataclass(frozen=True, eq=False)
+class MlResult:
+    """What :func:`estimate` returns, per cycle, ``(n_cycles, height, width)``.
+
+    Attributes
+    ----------
+    radiance : float32 ``L = exp(g_hat)`` in the unit of ``L_const``; NaN where flagged.
+    sigma_log : float32 standard deviation of ``ln L`` (the bound at the estimate).
+    flags : uint8, 0 (estimated), :data:`FLAG_NO_EVENTS`, :data:`FLAG_OUT_OF_RANGE`.
+    c_on, c_off : float32 the thresholds fitted with the radiance (their priors where no
+        event constrains them).
+    n_events : int32 events used per pixel.
+    """
+
+    radiance: np.ndarray
+    sigma_log: np.ndarray
+    flags: np.ndarray
+    c_on: np.ndarray
+    c_off: np.ndarray
+    n_events: np.ndarray
+
+    @property
+    def mask(self) -> np.ndarray:
+        """True where the pixel has an estimate."""
+        return self.flags == 0
+
+
+def thresholds_prior(sensor: SensorParams, *, width: int, height: int,
+                     c_on: np.ndarray | None = None, c_off: np.ndarray | None = None,
+                     sigma: float | np.ndarray | None = None
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per-pixel threshold priors ``(c_on, c_off, sigma_on, sigma_off)`` (flat arrays):
+    the calibrated maps when given (``sigma`` their error, default 0.005), else the
+    sensor's nominal thresholds with its mismatch ``threshold_sigma`` as the spread."""
+    npx = width * height
+    if c_on is None or c_off is None:
+        on = np.full(npx, sensor.threshold_on)
+        off = np.full(npx, sensor.threshold_off)
+        s = np.full(npx, max(sensor.threshold_sigma, 0.0))
+        return on, off, s, s.copy()
+    on = np.asarray(c_on, dtype=np.float64).ravel()
+    off = np.asarray(c_off, dtype=np.float64).ravel()
+    if on.size != npx or off.size != npx:
+        raise ValueError(f"threshold maps must have {height}x{width} pixels, got {on.size} "
+                         f"and {off.size}")
+    sg = 0.005 if sigma is None else sigma
+    s = np.broadcast_to(np.asarray(sg, dtype=np.float64).ravel() if np.ndim(sg) else
+                        np.asarray(sg, dtype=np.float64), (npx,)).astype(np.float64)
+    return on, off, s, s.copy()
+
+
+def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int,
+         priors: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+         g_prior: np.ndarray | None, sg_prior: np.ndarray | None, fixed: bool,
+         min_events: int = 2, start_sigma: float = 0.0) -> tuple[np.ndarray, ...]:
+    con, coff, scon, scoff = priors
+    counts = np.diff(off)
+    out_g = np.empty(npx)
+    out_sd = np.empty(npx)
+    out_con = np.empty(npx)
+    out_coff = np.empty(npx)
+    out_flag = np.zeros(npx, np.uint8)
+    gp = np.zeros(npx) if g_prior is None else np.ascontiguousarray(g_prior, dtype=np.float64)
+    sp = np.zeros(npx) if sg_prior is None else np.ascontiguousarray(sg_prior,
+                                                                      dtype=np.float64)
+    tq2 = model.jitter_us ** 2 + model.res_us ** 2 / 12.0
+    eq2 = model.res_us ** 2 / 12.0 + (model.jitter_us ** 2 if model.dead else 0.0)
+    _estimate_kernel(off, t, p, model.mode, model.dead, model.reset_sigma ** 2, tq2, eq2,
+                     model.noise_rate_per_us, model.exact, model.v0[0], model.v0[1],
+                     model.rows, model.g0, model.dlog, model.locate, model.inv_h,
+                     np.int64(model.window_us), model.g_lo, model.g_hi, model.net_g,
+                     model.net_v, np.int64(1 if fixed else min_events),
+                     np.ascontiguousarray(con), np.ascontiguousarray(coff),
+                     np.ascontiguousarray(scon), np.ascontiguousarray(scoff), gp, sp, fixed,
+                     out_g, out_sd, out_con, out_coff, out_flag, float(start_sigma))
+    return out_g, out_sd, out_con, out_coff, out_flag, counts
+
+
+def estimate(
+    events: np.ndarray,
+    *,
+    width: int,
+    height: int,
+    starts_us: np.ndarray,
+    model: MlModel,
+    priors: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    g_prior: np.ndarray | None = None,
+    g_prior_sigma: np.ndarray | None = None,
+    min_events: int = 2,
+    start_sigma: float = 0.0,
+    progress: Callable[[int, int], None] | None = None,
+) -> MlResult:
+    """Maximum-likelihood radiance per pixel and cycle.
+
+    Parameters
+    ----------
+    events : time-sorted events (``EVENT_DTYPE``).
+    starts_us : cycle starts (µs); each cycle uses ``[start, start + model.window_us)``.
+    model : :func:`ml_model` of the rig and the sensor.
+    priors : :func:`thresholds_prior`.
+    min_events : fewer events than this: no estimate (:data:`FLAG_NO_EVENTS`).
+    start_sigma : > 0 when every pixel starts the window settled at its reference (a
+        single ramp from rest, as a shutter opening): the start offset ``u`` is then
+        ``N(0, start_sigma^2)`` instead of the uniform band, and one event suffices.
+    g_prior, g_prior_sigma : optional Gaussian prior on ``ln L`` per pixel (flat): a known
+        flat field for calibration (then the thresholds are what is estimated).
+    progress : ``progress(done_cycles, n_cycles)``.
+    """
+    starts = np.asarray(starts_us, dtype=np.int64)
+    npx = width * height
+    n = starts.size
+    shape = (n, height, width)
+    rad = np.empty(shape, np.float32)
+    sd = np.empty(shape, np.float32)
+    flags = np.empty(shape, np.uint8)
+    con = np.empty(shape, np.float32)
+    coff = np.empty(shape, np.float32)
+    nev = np.empty(shape, np.int32)
+    for c in range(n):
+        off, t, p = group_by_pixel(events, width=width, height=height,
+                                   start_us=int(starts[c]), window_us=model.window_us)
+        g, s, c1, c2, fl, counts = _run(model, off, t, p, npx, priors, g_prior,
+                                        g_prior_sigma, False, min_events, start_sigma)
+        bad = fl != 0
+        with np.errstate(over="ignore"):
+            r = np.exp(g)
+        r[bad] = np.nan
+        s[bad] = np.nan
+        rad[c] = r.reshape(height, width)
+        sd[c] = s.reshape(height, width)
+        flags[c] = fl.reshape(height, width)
+        con[c] = c1.reshape(height, width)
+        coff[c] = c2.reshape(height, width)
+        nev[c] = counts.reshape(height, width)
+        if progress is not None:
+            progress(c + 1, n)
+    n_none = int(np.count_nonzero(flags == FLAG_NO_EVENTS))
+    n_out = int(np.count_nonzero(flags == FLAG_OUT_OF_RANGE))
+    if n_none or n_out:
+        logger.info("ml: %d pixel-cycles without events, %d outside the model's range "
+                    "(%.3g to %.3g): NaN", n_none, n_out, math.exp(model.g_lo),
+                    math.exp(model.g_hi))
+    return MlResult(radiance=rad, sigma_log=sd, flags=flags, c_on=con, c_off=coff,
+                    n_events=nev)
+
+
+def fisher_information(
+    events: np.ndarray,
+    *,
+    width: int,
+    height: int,
+    start_us: int,
+    model: MlModel,
+    priors: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    log_radiance: np.ndarray,
+) -> np.ndarray:
+    """The model's Cramér-Rao bound on ``ln L`` per pixel, ``(height, width)`` float64
+    standard deviations: the information matrix of :func:`estimate` evaluated at the
+    given ``log_radiance`` (the truth) over these events (for the expected bound: the
+    noiseless events of that radiance), thresholds and ``u`` marginalised. NaN where the
+    pixel has no event."""
+    off, t, p = group_by_pixel(events, width=width, height=height, start_us=int(start_us),
+                               window_us=model.window_us)
+    g = np.ascontiguousarray(np.asarray(log_radiance, dtype=np.float64).ravel())
+    _, sd, _, _, fl, _ = _run(model, off, t, p, width * height, priors, g, None, True)
+    sd[fl == FLAG_NO_EVENTS] = np.nan
+    return sd.reshape(height, width)
+
+
+# ----------------------------------------------------------------------------- recordings
+
+_MODEL_CACHE: dict[str, MlModel] = {}
+_MODEL_CACHE_SIZE = 4
+
+
+def cached_model(rig: Rig, sensor: SensorParams, *, window_us: float,
+                 dlog: float = DEFAULT_DLOG, from_rest: bool = False) -> MlModel:
+    """:func:`ml_model`, remembered for the last few (rig, sensor, window): a recording
+    read cycle by cycle builds its tables once."""
+    import hashlib
+    import json
+
+    key_src = json.dumps([rig.to_metadata(), sensor.to_metadata(), float(window_us),
+                          float(dlog), bool(from_rest)], sort_keys=True, default=str)
+    key = hashlib.sha1(key_src.encode()).hexdigest()
+    m = _MODEL_CACHE.get(key)
+    if m is None:
+        m = ml_model(rig, sensor, window_us=window_us, dlog=dlog, from_rest=from_rest)
+        if len(_MODEL_CACHE) >= _MODEL_CACHE_SIZE:
+            _MODEL_CACHE.pop(next(iter(_MODEL_CACHE)))
+        _MODEL_CACHE[key] = m
+    return m
+
+
+def sensor_of(metadata: dict[str, Any], *, threshold: float | None = None) -> SensorParams:
+    """The pixel model of a recording: its metadata's sensor (simulated recordings, or a
+    rig file's ``[sensor]``), else the preset its camera names (IMX636, DAVIS346), else
+    the default :class:`~asynhdr.sensor.params.SensorParams` with ``threshold`` (logged)."""
+    from asynhdr.sensor.params import PRESETS
+
+    s = metadata.get("sensor")
+    if isinstance(s, SensorParams):
+        return s
+    if isinstance(s, dict) and "threshold_on" in s:
+        return SensorParams.from_metadata(s)
+    text = " ".join(str(v) for v in (metadata.get("camera"), metadata.get("header"),
+                                     metadata.get("sensor_name")) if v).lower()
+    for name, preset in PRESETS.items():
+        if name not in ("ideal", "v2e") and name in text:
+            logger.info("ml: sensor model from the %s preset (named in the file)", name)
+            return preset
+    base = SensorParams()
+    if threshold is not None:
+        base = base.with_(threshold_on=threshold, threshold_off=threshold)
+    logger.warning("ml: the recording does not say which sensor made it; assuming the "
+                   "default pixel model (thresholds %.3g); give a rig file with a [sensor] "
+                   "table", base.threshold_on)
+    return base
+
+
+def reconstruct_ml(
+    rec: Recording,
+    windows: Any,
+    *,
+    rig: Rig,
+    l_const: float | None = None,
+    cmap: np.ndarray | None = None,
+    threshold: float | None = None,
+    sensor: SensorParams | None = None,
+    thresholds: tuple[np.ndarray, np.ndarray, np.ndarray | float] | None = None,
+    out: dict[str, Any] | None = None,
+    min_events: int | None = None,
+    settled_start: bool = False,
+) -> np.ndarray:
+    """``ml`` on a recording: float32 radiance ``(n_cycles, height, width)`` in the unit of
+    ``L_const``, NaN where a pixel has no information.
+
+    ``windows``: :class:`asynhdr.reconstruct.CycleWindows`. ``sensor``: the pixel model
+    (default :func:`sensor_of` the recording). ``thresholds``: calibrated ``(c_on, c_off,
+    sigma)`` maps (a calibration file); else a c-map ``cmap`` scales the nominal
+    thresholds (spread 0.01), else the nominal ones with the sensor's mismatch as their
+    spread. ``out`` receives ``sigma_log``, ``flags``, ``c_on``, ``c_off`` and
+    ``n_events`` (:class:`MlResult`'s fields). ``settled_start``: the pixels start the
+    window at rest on their reference (a single ramp from a closed shutter): the start
+    offset is then known to the reset noise (or 0.02) and one event suffices.
+    """
+    import dataclasses
+
+    from asynhdr.events import sort_events
+
+    if l_const is not None and float(l_const) != float(rig.l_const):
+        rig = dataclasses.replace(rig, l_const=float(l_const))
+    sensor = sensor or sensor_of(rec.metadata, threshold=threshold)
+    model = cached_model(rig, sensor, window_us=float(windows.window_us),
+                         from_rest=settled_start)
+    w, h = rec.width, rec.height
+    if thresholds is not None:
+        c_on, c_off, sig = thresholds
+        priors = thresholds_prior(sensor, width=w, height=h, c_on=c_on, c_off=c_off,
+                                  sigma=sig)
+    elif cmap is not None:
+        cm = np.asarray(cmap, dtype=np.float64)
+        priors = thresholds_prior(sensor, width=w, height=h, c_on=sensor.threshold_on * cm,
+                                  c_off=sensor.threshold_off * cm, sigma=0.01)
+    else:
+        priors = thresholds_prior(sensor, width=w, height=h)
+    ev, _ = sort_events(rec.events)
+    start_sigma = max(sensor.reset_noise_sigma, 0.02) if settled_start else 0.0
+    n_min = (1 if settled_start else 2) if min_events is None else int(min_events)
+    res = estimate(ev, width=w, height=h, starts_us=windows.start_us, model=model,
+                   priors=priors, min_events=n_min, start_sigma=start_sigma)
+    if out is not None:
+        out.update(sigma_log=res.sigma_log, flags=res.flags, c_on=res.c_on, c_off=res.c_off,
+                   n_events=res.n_events)
+    return res.radiance

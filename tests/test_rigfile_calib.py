@@ -1,0 +1,237 @@
+"""Rig files (round trip, errors), calibration from data (thresholds from flat fields,
+the calibration file, panel sweeps, the response), and the design's prediction."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from asynhdr.calib import (
+    Calibration,
+    fit_panel_curves,
+    fit_response,
+    read_sweep_csv,
+    simulate_sweep,
+    thresholds_from_flats,
+    write_sweep_csv,
+)
+from asynhdr.design import DESIGNED, _longest_run, default_rig, predict
+from asynhdr.io.calibration import read_calibration, write_calibration
+from asynhdr.io.rigfile import read_rig, write_rig
+from asynhdr.panel import tn_panel
+from asynhdr.rig import Rig
+from asynhdr.scene import flat_field
+from asynhdr.sensor.params import get_preset
+from asynhdr.simulate import draw_thresholds, simulate
+
+
+@pytest.mark.parametrize("rig", [
+    Rig(l_const=42.0, t1_shape="exponential", k_lens=0.5, period_us=40_000),
+    default_rig("imx636"),
+    Rig(l_const=10.0, panel="tn", period_us=20_000),
+], ids=["paper", "designed", "tn-panels"])
+def test_rig_file_round_trip(tmp_path: Path, rig: Rig) -> None:
+    sensor = get_preset("imx636").with_(name="imx636", refractory_us=50.0)
+    p = write_rig(tmp_path / "rig.toml", rig, sensor=sensor, made={"by": "test"})
+    f = read_rig(p)
+    assert f.rig.period_us == rig.period_us and f.rig.l_const == rig.l_const
+    assert f.rig.k_lens == rig.k_lens and f.rig.ramp_fraction == rig.ramp_fraction
+    w1, w2 = rig.waveforms()
+    v1, v2 = f.rig.waveforms()
+    # the transmitted waveforms, exactly (repr of float64 round-trips)
+    np.testing.assert_array_equal(w1(np.linspace(0, 1, 997)), v1(np.linspace(0, 1, 997)))
+    np.testing.assert_array_equal(w2(np.linspace(0, 1, 997)), v2(np.linspace(0, 1, 997)))
+    assert f.sensor is not None
+    assert f.sensor.refractory_us == 50.0
+    assert f.sensor.threshold_sigma == sensor.threshold_sigma
+    assert f.made == {"by": "test"}
+    assert f.radiance_unit == "lux"
+
+
+def test_rig_file_errors_name_file_and_field(tmp_path: Path) -> None:
+    p = tmp_path / "bad.toml"
+    p.write_text('format = "asynhdr-rig"\nversion = 1\n[rig]\nl_const = 5.0\n')
+    with pytest.raises(ValueError, match=r"bad.toml: rig.period_us: missing"):
+        read_rig(p)
+    p.write_text('format = "asynhdr-rig"\nversion = 1\n[rig]\nperiod_us = 50000\n'
+                 'l_const = 5.0\nlconst = 3\n')
+    with pytest.raises(ValueError, match=r"bad.toml: \[rig\]: unknown keys \['lconst'\]"):
+        read_rig(p)
+    p.write_text('format = "asynhdr-rig"\nversion = 1\n[rig]\nperiod_us = 50000\n'
+                 'l_const = -5.0\n')
+    with pytest.raises(ValueError, match=r"l_const must be positive"):
+        read_rig(p)
+    p.write_text('format = "something"\n')
+    with pytest.raises(ValueError, match=r"format"):
+        read_rig(p)
+
+
+def test_thresholds_from_flats_recover_simulated_thresholds() -> None:
+    # flat fields 30x brighter (ON events) and 30x darker (OFF events) than L_const, 2
+    # captures x 4 cycles each, IMX636 model with all its noise: the per-pixel ON and OFF
+    # thresholds come back within 0.005 (RMS; the mismatch is 0.05), and 90 % of the
+    # pixels within three stated errors
+    rig = default_rig("imx636")
+    sensor = get_preset("imx636")
+    w, h = 24, 16
+    rads = [rig.l_const * 30, rig.l_const / 30] * 2
+    caps = [simulate(flat_field(width=w, height=h, radiance=r), rig=rig, sensor=sensor,
+                     n_cycles=4, rng=i, sensor_seed=7) for i, r in enumerate(rads)]
+    cal = thresholds_from_flats(caps, radiance=rads, rig=rig, sensor=sensor)
+    c_on, c_off = draw_thresholds(sensor, width=w, height=h, rng=np.random.default_rng(7))
+    assert cal.c_on is not None and cal.c_off is not None
+    assert cal.sigma_on is not None and cal.sigma_off is not None
+    for est, true, err in ((cal.c_on, c_on, cal.sigma_on), (cal.c_off, c_off, cal.sigma_off)):
+        e = est - true
+        assert float(np.sqrt(np.mean(e ** 2))) < 0.005
+        assert float(np.mean(np.abs(e) < 3 * err + 1e-3)) >= 0.9
+        assert float(np.std(true)) > 0.03  # the mismatch it removes
+    assert cal.how["cycles"] == 12  # the first cycle of each capture is left out
+
+
+def test_calibration_file_round_trip(tmp_path: Path) -> None:
+    rng = np.random.default_rng(0)
+    sweep = simulate_sweep((tn_panel(normally_white=True), tn_panel(normally_white=False)),
+                           rng=1)
+    cal = Calibration(c_on=rng.uniform(0.1, 0.3, (4, 5)).astype(np.float32),
+                      c_off=rng.uniform(0.1, 0.3, (4, 5)).astype(np.float32),
+                      sigma_on=np.full((4, 5), 0.002, np.float32),
+                      sigma_off=np.full((4, 5), 0.003, np.float32),
+                      response=fit_response([1.0, 2.1, 3.9], [1.0, 2.0, 4.0]),
+                      panel_curves=fit_panel_curves(sweep), sensor=get_preset("davis346"),
+                      how={"kind": "test", "n": 3})
+    p = write_calibration(tmp_path / "cal.npz", cal)
+    back = read_calibration(p)
+    np.testing.assert_array_equal(back.c_on, cal.c_on)
+    np.testing.assert_array_equal(back.sigma_off, cal.sigma_off)
+    assert back.sensor == get_preset("davis346")
+    assert back.how == {"kind": "test", "n": 3}
+    assert back.response is not None
+    np.testing.assert_allclose(back.response(np.array([2.1])), [2.0], rtol=1e-6)
+    assert set(back.panel_curves) == {"1", "2"}
+    thr = back.threshold_maps()
+    assert thr is not None and thr[2].shape == (4, 5)
+    with pytest.raises(ValueError, match="calibration"):
+        write_calibration(tmp_path / "cal.npy", cal)
+
+
+def test_panel_sweep_csv_round_trip_and_fit(tmp_path: Path) -> None:
+    panels = (tn_panel(normally_white=True), tn_panel(normally_white=False))
+    sweep = simulate_sweep(panels, noise=0.002, rng=3)
+    p = write_sweep_csv(tmp_path / "sweep.csv", sweep)
+    back = read_sweep_csv(p)
+    for k in ("1", "2"):
+        np.testing.assert_array_equal(back[k][0], sweep[k][0])
+        np.testing.assert_array_equal(back[k][1], sweep[k][1])
+    curves = fit_panel_curves(back)
+    v = np.linspace(0.5, 4.5, 9)
+    for k, pn in zip(("1", "2"), panels, strict=True):
+        # the fitted curve follows the true one within a few noise sigmas
+        assert np.max(np.abs(curves[k].transmittance(v) - pn.curve.transmittance(v))) < 0.01
+    (tmp_path / "bad.csv").write_text("volts,t\n1,0.5\n")
+    with pytest.raises(ValueError, match="voltage_v"):
+        read_sweep_csv(tmp_path / "bad.csv")
+
+
+def test_response_fit_is_monotone() -> None:
+    r = fit_response([1.0, 3.0, 2.5, 10.0], [1.0, 2.0, 3.0, 4.0])
+    y = r(np.array([1.0, 2.0, 2.75, 10.0, 20.0]))
+    assert np.all(np.diff(y) >= 0)
+    assert y[-1] == pytest.approx(4.0 * 2.0, rel=1e-6)  # slope 1 beyond the last patch
+
+
+def test_designed_defaults_and_prediction() -> None:
+    # the designed rig of the ideal preset predicts the whole 0.1 .. 316,000 lux range
+    # (130 dB) at per-pixel SNR >= 20 dB; the paper's rig at most 90 dB (its blind band
+    # and its floor at 0.5 L_const)
+    assert set(DESIGNED) >= {"ideal", "v2e", "davis346", "imx636"}
+    levels = np.geomspace(0.1, 10 ** 5.5, 14)
+    snr = predict(default_rig("ideal"), get_preset("ideal"), levels=levels)
+    db, lo, _ = _longest_run(levels, snr >= 20.0)
+    assert db == pytest.approx(130.0) and lo == pytest.approx(0.1)
+    snr_p = predict(Rig(l_const=10.0), get_preset("ideal"), levels=levels)
+    db_p, _, _ = _longest_run(levels, snr_p >= 20.0)
+    assert db_p <= 90.0
+
+
+def test_thresholds_from_results_weights_by_events() -> None:
+    # hand-computed: pixel 0 fired 3 ON in cycle 0 (c_on 0.20) and 1 ON in cycle 1
+    # (c_on 0.24): (3 * 0.20 + 1 * 0.24) / 4 = 0.21; no OFF event: NaN
+    from asynhdr.calib import thresholds_from_results
+
+    c_on = np.array([[[0.20]], [[0.24]]])
+    c_off = np.array([[[0.3]], [[0.3]]])
+    n_on = np.array([[[3]], [[1]]])
+    n_off = np.zeros((2, 1, 1))
+    with np.errstate(invalid="ignore"):
+        on, off = thresholds_from_results(c_on, c_off, n_on, n_off)
+    assert on[0, 0] == pytest.approx(0.21)
+    assert np.isnan(off[0, 0])
+
+
+def test_ml_fits_thresholds_jointly_where_the_events_identify_them() -> None:
+    # one cycle of a flat field brighter and one darker than L_const: with a weak prior
+    # (0.1) on the thresholds, ml's own joint fit of (L, c_on, c_off) lands closer to the
+    # true thresholds than the nominal value on pixels with many events of a polarity
+    from asynhdr import ml
+
+    rig = default_rig("ideal")
+    sensor = get_preset("ideal")
+    w = 30
+    c_on = np.full((2, w), 0.2) + np.linspace(-0.05, 0.05, w)
+    c_off = np.full((2, w), 0.2) - np.linspace(-0.05, 0.05, w)
+    scene = np.array([[rig.l_const * 100.0] * w, [rig.l_const / 100.0] * w])
+    rec = simulate(scene, rig=rig, sensor=sensor, n_cycles=2, rng=0, thresholds=(c_on, c_off))
+    model = ml.ml_model(rig, sensor)
+    pri = ml.thresholds_prior(sensor, width=w, height=2, c_on=np.full((2, w), 0.2),
+                              c_off=np.full((2, w), 0.2), sigma=0.1)
+    res = ml.estimate(rec.events, width=w, height=2, starts_us=rig.cycle_starts_us(2),
+                      model=model, priors=pri)
+    # the bright row fires ON events: its c_on is identified; the dark row's c_off
+    err_on = np.abs(res.c_on[-1, 0] - c_on[0])
+    err_off = np.abs(res.c_off[-1, 1] - c_off[1])
+    assert np.median(err_on) < 0.01 < np.median(np.abs(c_on[0] - 0.2))
+    assert np.median(err_off) < 0.01
+
+
+def test_cli_calibrate_thresholds_then_reconstruct_with_calibration(tmp_path: Path) -> None:
+    # simulate --rig-out, flat fields above and below L_const, calibrate-thresholds, then
+    # reconstruct --calibration: the file holds per-pixel maps and ml uses them
+    from typer.testing import CliRunner
+
+    from asynhdr.cli import _register, app
+    from asynhdr.io.images import read_image
+
+    _register()
+    runner = CliRunner()
+    rig = tmp_path / "rig.toml"
+    lc = default_rig("imx636").l_const
+    flats = []
+    for i, r in enumerate((lc * 30, lc / 30)):
+        f = tmp_path / f"flat{i}.h5"
+        res = runner.invoke(app, ["simulate", f"flat:{r}", "-o", str(f), "--width", "12",
+                                  "--height", "8", "--preset", "imx636", "--n-cycles", "3",
+                                  "--seed", str(i), "--rig-out", str(rig), "--overwrite"])
+        assert res.exit_code == 0, res.output
+        flats.append(str(f))
+    cal = tmp_path / "cal.npz"
+    res = runner.invoke(app, ["calibrate-thresholds", *flats, "--radiance", str(lc * 30),
+                              "--radiance", str(lc / 30), "--rig", str(rig), "-o", str(cal)])
+    assert res.exit_code == 0, res.output
+    back = read_calibration(cal)
+    c_on, c_off = draw_thresholds(get_preset("imx636"), width=12, height=8,
+                                  rng=np.random.default_rng(1))
+    assert back.c_on is not None and back.c_off is not None
+    assert float(np.sqrt(np.mean((back.c_on - c_on) ** 2))) < 0.01
+    assert float(np.sqrt(np.mean((back.c_off - c_off) ** 2))) < 0.01
+    scene = tmp_path / "scene.h5"
+    res = runner.invoke(app, ["simulate", "flat:2000", "-o", str(scene), "--width", "12",
+                              "--height", "8", "--preset", "imx636", "--n-cycles", "2"])
+    assert res.exit_code == 0, res.output
+    res = runner.invoke(app, ["reconstruct", str(scene), "-o", str(tmp_path / "img"),
+                              "--method", "ml", "--calibration", str(cal), "--formats", "exr"])
+    assert res.exit_code == 0, res.output
+    img = read_image(tmp_path / "img" / "scene_ml_0001.exr")
+    assert abs(float(np.nanmedian(img)) / 2000.0 - 1.0) < 0.03
