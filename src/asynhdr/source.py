@@ -265,6 +265,7 @@ def windows_from_chunks(
     pending = np.empty(0, dtype=EVENT_DTYPE)  # events of windows i.., file order
     order = np.empty(0, dtype=np.int64)  # pending sorted stably by time
     t_sorted = np.empty(0, dtype=np.int64)
+    arrived: list[np.ndarray] = []  # chunks not yet in pending (joined when a window is cut)
     pending_tr = np.empty(0, dtype=TRIGGER_DTYPE)
     i = 0
     t_seen: int | None = None
@@ -287,8 +288,23 @@ def windows_from_chunks(
             hits += bool(((tv >= starts[: jv + 1]) & (tv < stops[: jv + 1])).any())
         return hits
 
+    def join() -> None:
+        """Move the arrived chunks into ``pending`` and sort it once (not per chunk: a
+        window of millions of events arrives in hundreds of chunks)."""
+        nonlocal pending, order, t_sorted
+        if not arrived:
+            return
+        pending = np.concatenate([pending, *arrived]) if pending.size or len(arrived) > 1 \
+            else arrived[0]
+        arrived.clear()
+        order = np.argsort(pending["t"], kind="stable")
+        t_sorted = pending["t"][order]
+
     def drain(final: bool) -> Iterator[Window]:
         nonlocal i, pending, order, t_sorted, pending_tr
+        if i < n and (final or (t_seen is not None
+                                and t_seen >= int(stops[i]) + int(holdback_us))):
+            join()
         while i < n and (final or (t_seen is not None
                                    and t_seen >= int(stops[i]) + int(holdback_us))):
             yield cut(i)
@@ -319,9 +335,7 @@ def windows_from_chunks(
                     late += late_count(t[early])
                 ev = ev[~early]
             if ev.size:
-                pending = np.concatenate([pending, ev]) if pending.size else ev
-                order = np.argsort(pending["t"], kind="stable")
-                t_sorted = pending["t"][order]
+                arrived.append(ev)
         if tr.size:
             pending_tr = np.concatenate([pending_tr, tr]) if pending_tr.size else tr
         yield from drain(final=False)
