@@ -109,3 +109,21 @@ def test_cli_scheduler_local_writes_the_serial_images(tmp_path: Path) -> None:
     r = runner.invoke(app, ["reconstruct", str(rec), "-o", str(tmp_path / "c"),
                             "--scheduler", "tcp://127.0.0.1:1"])
     assert r.exit_code == 2 and "scheduler" in r.output
+
+
+def test_cli_evaluate_on_workers_gives_the_serial_figures(tmp_path: Path) -> None:
+    import json
+
+    scene = tmp_path / "grad.npy"
+    np.save(scene, np.geomspace(1.0, 1e4, 96 * 64).reshape(64, 96).astype(np.float32))
+    common = ["--width", "96", "--height", "64", "--methods", "raw,exp,invert",
+              "--n-cycles", "2"]
+    a, b = tmp_path / "a", tmp_path / "b"
+    r = runner.invoke(app, ["evaluate", str(scene), str(scene), "--out", str(a), *common])
+    assert r.exit_code == 0, r.output
+    r = runner.invoke(app, ["evaluate", str(scene), str(scene), "--out", str(b), *common,
+                            "--scheduler", "local", "--workers", "2"])
+    assert r.exit_code == 0, r.output
+    sa = json.loads((a / "evaluate.json").read_text())["scenes"]
+    sb = json.loads((b / "evaluate.json").read_text())["scenes"]
+    assert [s["methods"] for s in sa] == [s["methods"] for s in sb]

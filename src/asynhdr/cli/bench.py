@@ -3,12 +3,14 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
 import shlex
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -49,13 +51,45 @@ def _fmt(v: float | None, nd: int = 2) -> str:
     return "inf" if math.isinf(v) else f"{v:.{nd}f}"
 
 
+def _client(stack: contextlib.ExitStack, scheduler: str | None, workers: int | None) -> Any:
+    """A dask client entered on ``stack`` for ``--scheduler``, or None."""
+    if scheduler is None:
+        return None
+    from asynhdr.distributed import scheduler_client
+
+    client = stack.enter_context(scheduler_client(scheduler, workers=workers))
+    err_console.print(f"on {len(client.scheduler_info()['workers'])} dask workers "
+                      f"({scheduler})")
+    return client
+
+
+def _chart_for(preset: str, *, sizes: dict[str, tuple[int, int]], **kwargs: Any) -> Any:
+    """The chart experiment of one preset (a task a dask worker can run)."""
+    from asynhdr.experiments import run_chart_experiment
+
+    w, h = sizes[preset]
+    return run_chart_experiment(width=w, height=h, sensor=preset, **kwargs)
+
+
+def _evaluate_file(f: Path, **kwargs: Any) -> Any:
+    """Read one scene and evaluate it (a task a dask worker can run)."""
+    from asynhdr.evaluate import evaluate_scene
+    from asynhdr.io.images import read_radiance
+
+    radiance, info = read_radiance(f)
+    if info.get("clipped_negative"):
+        err_console.print(f"{f}: {info['clipped_negative']} negative pixels clipped to 0")
+    return evaluate_scene(radiance, name=f.stem, **kwargs)
+
+
 def _run_scenes(files: list[Path], out: Path, *, width: int, height: int, preset: str,
                 scale: float | None, n_cycles: int, frame_camera: str, seed: int,
                 sensor_seed: int, update: Any, rig: Any = None,
-                methods: tuple[str, ...] | None = None
+                methods: tuple[str, ...] | None = None, client: Any = None,
                 ) -> tuple[list[dict[str, Any]], dict[str, str]]:
-    from asynhdr.evaluate import calibrate_for_scenes, evaluate_scene
-    from asynhdr.io.images import read_radiance, write_image
+    from asynhdr.distributed import map_ordered
+    from asynhdr.evaluate import calibrate_for_scenes
+    from asynhdr.io.images import write_image
     from asynhdr.plots import plot_mosaic
 
     cmap = calibrate_for_scenes(width=width, height=height, sensor=preset,
@@ -70,14 +104,16 @@ def _run_scenes(files: list[Path], out: Path, *, width: int, height: int, preset
             width=width, height=height, sensor=preset, rig=rig, sensor_seed=sensor_seed)
     summaries: list[dict[str, Any]] = []
     figures: dict[str, str] = {}
-    for i, f in enumerate(files):
-        radiance, info = read_radiance(f)
-        if info.get("clipped_negative"):
-            err_console.print(f"{f}: {info['clipped_negative']} negative pixels clipped to 0")
-        ev = evaluate_scene(radiance, name=f.stem, width=width, height=height, sensor=preset,
-                            scale=scale, cmap=cmap, n_cycles=n_cycles,
-                            frame_camera=frame_camera, seed=seed, sensor_seed=sensor_seed,
-                            progress=update, **more)
+    kw: dict[str, Any] = dict(width=width, height=height, sensor=preset, scale=scale,
+                              cmap=cmap,
+              n_cycles=n_cycles, frame_camera=frame_camera, seed=seed,
+              sensor_seed=sensor_seed, **more)
+    evaluations: Iterator[Any]
+    if client is None:
+        evaluations = (_evaluate_file(f, progress=update, **kw) for f in files)
+    else:  # the scenes on the workers, results in order
+        evaluations = iter(map_ordered(client, _evaluate_file, files, **kw))
+    for i, (f, ev) in enumerate(zip(files, evaluations, strict=True)):
         summaries.append(ev.summary())
         y0, y1, x0, x1 = ev.metadata["region"]
         truth = ev.scene.radiance[y0:y1, x0:x1]
@@ -131,6 +167,10 @@ def evaluate(
                                   "(asynhdr.design.DESIGNED) instead of the paper's."),
     methods: str | None = typer.Option(None, help="Comma-separated event methods (default: "
                                        "raw,linear,exp,ttfe,invert,ml)."),
+    scheduler: str | None = typer.Option(None, help="Evaluate the scenes on dask workers: "
+                                         "'local' or a scheduler's address."),
+    workers: int | None = typer.Option(None, help="With --scheduler local: worker "
+                                       "processes (default: one per core)."),
 ) -> None:
     """Simulate and reconstruct real HDR scenes with every method, image them with a frame
     camera (single exposure, Debevec fusion of 10 exposures and of one cycle's worth), and
@@ -155,12 +195,13 @@ def evaluate(
 
             rig = default_rig(preset)
         meths = tuple(m.strip() for m in methods.split(",") if m.strip()) if methods else None
-        with progress_bar() as update:
+        with contextlib.ExitStack() as stack, progress_bar() as update:
+            client = _client(stack, scheduler, workers)
             summaries, _ = _run_scenes(scenes, out, width=width, height=height, preset=preset,
                                        scale=scale, n_cycles=n_cycles,
                                        frame_camera=frame_camera, seed=seed,
                                        sensor_seed=sensor_seed, update=update, rig=rig,
-                                       methods=meths)
+                                       methods=meths, client=client)
     except (ValueError, FileNotFoundError) as exc:
         fail(str(exc))
     _print_scenes(summaries)
@@ -185,6 +226,10 @@ def bench(
     frame_camera: str = typer.Option("imx174", help="Frame camera preset."),
     seed: int = typer.Option(0, help="Seed of the captures' randomness."),
     sensor_seed: int = typer.Option(1, help="Seed of the sensors' frozen mismatch."),
+    scheduler: str | None = typer.Option(None, help="Run the presets and scenes on dask "
+                                         "workers: 'local' or a scheduler's address."),
+    workers: int | None = typer.Option(None, help="With --scheduler local: worker "
+                                       "processes (default: one per core)."),
 ) -> None:
     """The paper's experiments in simulation: the 36-level chart for every preset and
     every method with and without c-map (SNR table, both dynamic ranges, response,
@@ -229,16 +274,23 @@ def bench(
     figures: dict[str, str] = {}
     sweeps: dict[str, list[dict[str, Any]]] = {}
     try:
-        with progress_bar() as update:
+        with contextlib.ExitStack() as stack, progress_bar() as update:
+            client = _client(stack, scheduler, workers)
+            common: dict[str, Any] = dict(n_cycles=n_cycles, n_flat=n_flat, k_sweep=ks,
+                          frame_camera=frame_camera, seed=seed, sensor_seed=sensor_seed)
+            spread = None
+            if client is not None:  # every preset on a worker, results in order
+                from asynhdr.distributed import map_ordered
+
+                spread = iter(map_ordered(client, _chart_for, names, sizes=settings["sizes"],
+                                          **common))
             for p in names:
                 w, h = settings["sizes"][p]
                 def stage(st: str, d: int, t: int, p: str = p) -> None:
                     update(f"{p}: {st}", d, t)
 
-                res = run_chart_experiment(
-                    width=w, height=h, sensor=p, n_cycles=n_cycles, n_flat=n_flat,
-                    k_sweep=ks, frame_camera=frame_camera, seed=seed,
-                    sensor_seed=sensor_seed, progress=stage)
+                res = next(spread) if spread is not None else run_chart_experiment(
+                    width=w, height=h, sensor=p, progress=stage, **common)
                 summary["presets"][p] = res.summary()
                 sweeps[p] = res.k_sweep
                 d = out / p
@@ -259,7 +311,7 @@ def bench(
                 summary["scenes"], scene_figs = _run_scenes(
                     files, out, width=sw, height=sh, preset=scene_preset, scale=None,
                     n_cycles=2, frame_camera=frame_camera, seed=seed,
-                    sensor_seed=sensor_seed, update=update)
+                    sensor_seed=sensor_seed, update=update, client=client)
                 figures.update(scene_figs)
     except ValueError as exc:
         fail(str(exc))
