@@ -573,3 +573,39 @@ def test_bad_inputs_raise_clear_errors() -> None:
     closed = Rig(t2=Waveform.from_samples([1.0, 0.0]))
     with pytest.raises(ValueError, match="irradiance reaches zero"):
         simulate(np.zeros((2, 3)), rig=closed, sensor=IDEAL)
+
+
+@pytest.mark.parametrize("nbins", [300, 70_000])
+def test_gather_is_a_stable_sort_by_time(nbins: int) -> None:
+    """The events leave the counting sort ordered by time and, among equal times, by
+    listed pixel then by each pixel's own order, as a stable argsort would put them
+    (16-bit slots for short cycles, 32-bit beyond 65,536 bins)."""
+    rng = np.random.default_rng(3)
+    width = 37
+    pix = np.sort(rng.choice(37 * 29, size=500, replace=False)).astype(np.int64)
+    counts = rng.integers(0, 12, pix.size).astype(np.int64)
+    offsets = np.zeros(pix.size + 1, dtype=np.int64)
+    np.cumsum(counts + 3, out=offsets[1:])  # spare slots, as the bound leaves them
+    slot_t = np.full(int(offsets[-1]), nbins - 1,
+                     dtype=np.uint16 if nbins <= 1 << 16 else np.int32)
+    slot_p = np.zeros(int(offsets[-1]), dtype=np.int8)
+    want_t, want_x, want_y, want_p = [], [], [], []
+    for i in range(pix.size):
+        t = np.sort(rng.integers(0, nbins, counts[i]))
+        p = rng.choice(np.array([-1, 1], dtype=np.int8), counts[i])
+        o = offsets[i]
+        slot_t[o:o + counts[i]] = t
+        slot_p[o:o + counts[i]] = p
+        want_t.append(t)
+        want_p.append(p)
+        want_x.append(np.full(counts[i], pix[i] % width))
+        want_y.append(np.full(counts[i], pix[i] // width))
+    t_all = np.concatenate(want_t)
+    order = np.argsort(t_all, kind="stable")
+    ev = pixel_mod.gather_sorted(offsets, counts, slot_t, slot_p, pix, width=width,
+                                 t_first_us=-5, nbins=nbins)
+    assert ev.dtype == EVENT_DTYPE and ev.size == counts.sum()
+    np.testing.assert_array_equal(ev["t"], t_all[order] - 5)
+    np.testing.assert_array_equal(ev["x"], np.concatenate(want_x)[order])
+    np.testing.assert_array_equal(ev["y"], np.concatenate(want_y)[order])
+    np.testing.assert_array_equal(ev["p"], np.concatenate(want_p)[order])

@@ -18,14 +18,14 @@ _M2 = np.uint64(0x94D049BB133111EB)
 _GOLD = np.uint64(0x9E3779B97F4A7C15)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, inline="always", error_model="numpy")
 def _mix(z):
     z = (z ^ (z >> np.uint64(30))) * _M1
     z = (z ^ (z >> np.uint64(27))) * _M2
     return z ^ (z >> np.uint64(31))
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, inline="always", error_model="numpy")
 def hash_uniform(seed, a, b, c):
     """Uniform in (0, 1) from the 64-bit ``seed`` and three integer counters."""
     z = np.uint64(seed)
@@ -35,7 +35,7 @@ def hash_uniform(seed, a, b, c):
     return (np.float64(z >> np.uint64(11)) + 0.5) * (1.0 / 9007199254740992.0)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, inline="always", error_model="numpy")
 def hash_normal(seed, a, b, c):
     """Standard normal (Box-Muller) from the seed and three counters."""
     u1 = hash_uniform(seed, a, b, 2 * c)
@@ -43,7 +43,7 @@ def hash_normal(seed, a, b, c):
     return np.sqrt(-2.0 * np.log(u1)) * np.cos(2.0 * np.pi * u2)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, inline="always", error_model="numpy")
 def hash_normal2(seed, a, b, c):
     """Two independent standard normals (both Box-Muller outputs) for one counter."""
     # the same values as hash_uniform(seed, a, b, 2c) and (.., 2c + 1), the mixes of

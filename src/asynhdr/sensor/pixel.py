@@ -136,7 +136,7 @@ def cycle_pieces(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.asarray(pieces, dtype=np.int64)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _pixel_runs(wa, wb, d1, d2, pieces, runs):
     """Monotone runs ``[first knot, last knot, +1/-1]`` of ``wa a + wb b`` from the
     pieces: a bisection finds the turning point inside each. Returns the count."""
@@ -170,7 +170,7 @@ def _pixel_runs(wa, wb, d1, d2, pieces, runs):
     return nr
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, inline="always", error_model="numpy")
 def _runs_of(i, mode, wa, wb, d1, d2, pieces, run_key, run_off, run_tab, local):
     """The runs of listed pixel ``i``: its own (mode 0, into ``local``) or shared."""
     if mode == 0:
@@ -184,17 +184,17 @@ def _runs_of(i, mode, wa, wb, d1, d2, pieces, run_key, run_off, run_tab, local):
 # ----------------------------------------------------------------------------- search
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, inline="always", error_model="numpy")
 def _val(rows, ia, ib, wa, wb, k):
     return wa * rows[ia, k] + wb * rows[ib, k]
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, inline="always", error_model="numpy")
 def _reaches(e, thr, up):
     return (e >= thr) if up else (e <= thr)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, inline="always", error_model="numpy")
 def _bisect(rows, ia, ib, wa, wb, b, a, thr, up):
     """First knot in ``[b, a]`` that reaches ``thr``, given that ``a`` does (branch-free
     halving)."""
@@ -206,7 +206,7 @@ def _bisect(rows, ia, ib, wa, wb, b, a, thr, up):
     return a
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, inline="always", error_model="numpy")
 def _first(rows, ia, ib, wa, wb, lo, hi, thr, up, v_prev):
     """First knot ``j`` in ``[lo, hi]`` where ``V_j >= thr`` (``up``; ``V`` non-decreasing
     there) or ``V_j <= thr`` (non-increasing); ``hi + 1`` when none.
@@ -255,7 +255,7 @@ def _first(rows, ia, ib, wa, wb, lo, hi, thr, up, v_prev):
     return _bisect(rows, ia, ib, wa, wb, a + 1, b, thr, up)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, inline="always", error_model="numpy")
 def _locate(s, idx, lo, hi, t):
     """Interval index ``k`` in ``[lo, hi]`` with ``s[k] <= t < s[k + 1]`` (``s[lo] <= t``):
     ``idx[m]`` is the last grid point at or before ``m`` µs, so the answer is a few steps
@@ -272,7 +272,7 @@ def _locate(s, idx, lo, hi, t):
     return j
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, inline="always", error_model="numpy")
 def _run_at(runs, nr, r, t, s):
     """Index of the run containing time ``t``, searching from run ``r`` either way."""
     while r > 0 and s[runs[r, 0]] > t:
@@ -282,7 +282,7 @@ def _run_at(runs, nr, r, t, s):
     return r
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, inline="always", error_model="numpy")
 def _at(rows, ia, ib, wa, wb, s, k, t):
     """``V(t)`` inside interval ``k``."""
     va = _val(rows, ia, ib, wa, wb, k)
@@ -292,7 +292,7 @@ def _at(rows, ia, ib, wa, wb, s, k, t):
     return va + (vb - va) * ((t - s[k]) / (s[k + 1] - s[k]))
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, inline="always", error_model="numpy")
 def _levels(r_lvl, con, coff, log_domain):
     """The ON and OFF levels for reference ``r_lvl``, in the signal's domain."""
     if log_domain:
@@ -303,7 +303,7 @@ def _levels(r_lvl, con, coff, log_domain):
 # ----------------------------------------------------------------------------- one cycle
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, parallel=True, error_model="numpy")
 def _fire(pix, order, s, idx, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pieces, run_key,
           run_off, run_tab, c_on, c_off, ref, ready, pending, pending_z, alive, nz_off, nz_t,
           nz_pol, seed, cycle, sigma, refr_us, lat_us, jit_us, period_us, offsets, slot_t,
@@ -507,7 +507,7 @@ def _fire(pix, order, s, idx, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pi
             pending_z[p] = pz
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, parallel=True, error_model="numpy")
 def _bounds(pix, order, s, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pieces, run_key,
             run_off, run_tab, c_on, c_off, alive, nz_off, sigma, c_scale, out, block):
     """Upper bound on each listed pixel's events in the cycle: over every monotone run,
@@ -607,6 +607,8 @@ def fire_cycle(
     idx = (np.searchsorted(s, np.arange(math.ceil(float(s[-1])) + 1, dtype=np.float64),
                            side="right") - 1).astype(np.int64)
     bound = np.empty(n, dtype=np.int64)
+    # a slot holds a time bin: 16 bits while a cycle's bins fit
+    slot_dtype = np.uint16 if nbins <= 1 << 16 else np.int32
     c_scale = 1.0
     saved = state.copy()
     for _attempt in range(8):
@@ -616,7 +618,7 @@ def fire_cycle(
         offsets = np.zeros(n + 1, dtype=np.int64)
         np.cumsum(bound, out=offsets[1:])
         total = int(offsets[-1])
-        slot_t = np.empty(total, dtype=np.int32)
+        slot_t = np.empty(total, dtype=slot_dtype)
         slot_p = np.empty(total, dtype=np.int8)
         counts = np.empty(n, dtype=np.int64)
         overflow = np.zeros(n, dtype=np.int8)
@@ -637,37 +639,65 @@ def fire_cycle(
 # ----------------------------------------------------------------------------- output
 
 
-@nb.njit(cache=True, parallel=True)
-def _gather(offsets, counts, slot_t, slot_p, pix, width, t_first, nbins, out):
+_FINE_BITS = 8  # a coarse time bin holds 2**_FINE_BITS µs bins
+
+
+@nb.njit(cache=True, parallel=True, error_model="numpy")
+def _gather(offsets, counts, slot_t, slot_p, xs, ys, t_first, nbins, keys, out):
+    """Counting sort of the slots by time bin in two cache-friendly passes: each pixel's
+    events go to their coarse bin as packed keys (listed pixel, fine bin, polarity), then each
+    coarse bin's keys go to their place in ``out``. Stable: listed-pixel order, then
+    each pixel's own order, within a time bin."""
     npix = counts.shape[0]
+    fb = _FINE_BITS
+    fmask = (1 << fb) - 1
+    ncoarse = (nbins + fmask) >> fb
     nblk = 16
     bsize = (npix + nblk - 1) // nblk
-    hist = np.zeros((nblk, nbins), dtype=np.int64)
+    hist = np.zeros((nblk, ncoarse << fb), dtype=np.int64)
     for b in nb.prange(nblk):
         for i in range(b * bsize, min(npix, (b + 1) * bsize)):
             o = offsets[i]
             for k in range(counts[i]):
                 hist[b, slot_t[o + k]] += 1
+    # start of every µs bin in the output, and of every block's share of a coarse bin
+    start = np.empty((ncoarse << fb) + 1, dtype=np.int64)
+    cpos = np.empty((nblk, ncoarse), dtype=np.int64)
     acc = np.int64(0)
-    for tb in range(nbins):
+    for c in range(ncoarse):
         for b in range(nblk):
-            c = hist[b, tb]
-            hist[b, tb] = acc
-            acc += c
+            cpos[b, c] = acc
+            for f in range(c << fb, (c + 1) << fb):
+                acc += hist[b, f]
+    acc = np.int64(0)
+    for f in range(ncoarse << fb):
+        start[f] = acc
+        for b in range(nblk):
+            acc += hist[b, f]
+    start[ncoarse << fb] = acc
     for b in nb.prange(nblk):
         for i in range(b * bsize, min(npix, (b + 1) * bsize)):
             o = offsets[i]
-            p = pix[i]
-            y = p // width
-            x = p - y * width
+            head = np.int64(i) << (fb + 1)
             for k in range(counts[i]):
-                tb = slot_t[o + k]
-                d = hist[b, tb]
-                hist[b, tb] = d + 1
-                out[d].x = x
-                out[d].y = y
-                out[d].p = slot_p[o + k]
-                out[d].t = t_first + tb
+                tb = np.int64(slot_t[o + k])
+                c = tb >> fb
+                d = cpos[b, c]
+                cpos[b, c] = d + 1
+                keys[d] = head | ((tb & fmask) << 1) | (1 if slot_p[o + k] > 0 else 0)
+    for c in nb.prange(ncoarse):
+        pos = start[c << fb:(c + 1) << fb].copy()
+        tbase = t_first + (np.int64(c) << fb)
+        for j in range(start[c << fb], start[(c + 1) << fb]):
+            key = np.int64(keys[j])
+            f = (key >> 1) & fmask
+            d = pos[f]
+            pos[f] = d + 1
+            i = key >> (fb + 1)
+            out[d].x = xs[i]
+            out[d].y = ys[i]
+            out[d].p = 1 if (key & 1) else -1
+            out[d].t = tbase + f
 
 
 def gather_sorted(offsets: np.ndarray, counts: np.ndarray, slot_t: np.ndarray,
@@ -676,7 +706,11 @@ def gather_sorted(offsets: np.ndarray, counts: np.ndarray, slot_t: np.ndarray,
     """Events (``EVENT_DTYPE``) from the slots, sorted by time by a counting sort over the
     ``nbins`` µs bins (bin ``b`` is time ``t_first_us + b``). Stable: among equal times,
     listed-pixel order, then each pixel's own order."""
-    out = np.empty(int(counts.sum()), dtype=EVENT_DTYPE)
-    _gather(offsets, counts, slot_t, slot_p, pix, np.int64(width), np.int64(t_first_us),
-            np.int64(nbins), out)
+    n = int(counts.sum())
+    out = np.empty(n, dtype=EVENT_DTYPE)
+    ys, xs = np.divmod(pix, width)
+    # keys hold (listed pixel, fine bin, polarity): 32 bits while they fit
+    key_dtype = np.uint32 if pix.size < 1 << (31 - _FINE_BITS) else np.int64
+    _gather(offsets, counts, slot_t, slot_p, xs.astype(np.uint16), ys.astype(np.uint16),
+            np.int64(t_first_us), np.int64(nbins), np.empty(n, dtype=key_dtype), out)
     return out
