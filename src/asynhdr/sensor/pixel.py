@@ -681,23 +681,23 @@ def _gather(offsets, counts, slot_t, slot_p, xs, ys, t_first, nbins, keys, out):
             head = np.int64(i) << (fb + 1)
             for k in range(counts[i]):
                 tb = np.int64(slot_t[o + k])
-                c = tb >> fb
-                d = cpos[b, c]
-                cpos[b, c] = d + 1
+                cb = tb >> fb
+                d = cpos[b, cb]
+                cpos[b, cb] = d + 1
                 keys[d] = head | ((tb & fmask) << 1) | (1 if slot_p[o + k] > 0 else 0)
     for c in nb.prange(ncoarse):
         pos = start[c << fb:(c + 1) << fb].copy()
         tbase = t_first + (np.int64(c) << fb)
         for j in range(start[c << fb], start[(c + 1) << fb]):
             key = np.int64(keys[j])
-            f = (key >> 1) & fmask
-            d = pos[f]
-            pos[f] = d + 1
-            i = key >> (fb + 1)
-            out[d].x = xs[i]
-            out[d].y = ys[i]
+            fine = (key >> 1) & fmask
+            d = pos[fine]
+            pos[fine] = d + 1
+            li = key >> (fb + 1)
+            out[d].x = xs[li]
+            out[d].y = ys[li]
             out[d].p = 1 if (key & 1) else -1
-            out[d].t = tbase + f
+            out[d].t = tbase + fine
 
 
 def gather_sorted(offsets: np.ndarray, counts: np.ndarray, slot_t: np.ndarray,
