@@ -13,6 +13,7 @@ import json
 from pathlib import Path
 from typing import Any
 
+from asynhdr.design import default_rig
 from asynhdr.motion import edge_scene, run_motion_experiment
 
 
@@ -20,16 +21,22 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--preset", default="imx636")
     ap.add_argument("--velocities", default="0,50,200,400", help="px/s, comma-separated")
+    ap.add_argument("--methods", default="invert,exp", help="event methods, comma-separated")
+    ap.add_argument("--designed", action="store_true",
+                    help="the preset's designed rig (asynhdr design) instead of the paper's")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args(argv)
     scene = edge_scene(width=120, height=60, dark=30.0, bright=3000.0)
     rows = []
-    print(f"{args.preset}: edge 30 | 3000 lux, 120x60, 4 cycles of 50 ms (first left out)")
+    rig = default_rig(args.preset) if args.designed else None
+    methods = tuple(args.methods.split(","))
+    print(f"{args.preset} ({'designed' if args.designed else 'paper'} rig): edge 30 | 3000 "
+          f"lux, 120x60, 4 cycles of 50 ms (first left out)")
     print("| v (px/s) | motion in the ramp (px) | method | log RMSE (stops) | edge width (px) |")
     print("| --- | --- | --- | --- | --- |")
     for v in (float(x) for x in args.velocities.split(",")):
         res = run_motion_experiment(scene, velocity_px_per_s=(v, 0.0), sensor=args.preset,
-                                    n_cycles=4)
+                                    n_cycles=4, rig=rig, methods=methods)
         for m, s in res.summary().items():
             row = {"velocity_px_per_s": v, "method": m, **s,
                    "motion_during_ramp_px": res.settings["motion_during_ramp_px"]}
@@ -38,7 +45,8 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
                   f"{s['log_rmse_stops']:.3f} | {s['edge_width_px']:.1f} |", flush=True)
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)
-        (args.out / f"motion_{args.preset}.json").write_text(json.dumps(rows, indent=1))
+        name = f"motion_{args.preset}{'_designed' if args.designed else ''}.json"
+        (args.out / name).write_text(json.dumps(rows, indent=1))
     return rows
 
 

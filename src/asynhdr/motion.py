@@ -58,15 +58,16 @@ def edge_scene(*, width: int, height: int, dark: float, bright: float,
 
 
 def edge_width_px(image: npt.ArrayLike, *, rows: slice | None = None) -> float:
-    """10-90 % width (pixels) of the largest step along x of the central rows' mean log
-    profile; NaN when the image has no positive step."""
+    """10-90 % width (pixels) of the largest step along x of the central rows' median log
+    profile (pixels without a value, holes or NaN, left out: they are counted by the log
+    error, not here); NaN when the image has no positive step."""
     a = np.asarray(image, dtype=np.float64)
     h = a.shape[0]
     sel = a[rows if rows is not None else slice(h // 3, 2 * h // 3)]
-    pos = sel[sel > 0]
-    if pos.size == 0:
+    ok = np.isfinite(sel) & (sel > 0)
+    if not ok.any(axis=0).all():
         return float("nan")
-    prof = np.log(np.maximum(sel, pos.min())).mean(axis=0)
+    prof = np.nanmedian(np.log(np.where(ok, sel, np.nan)), axis=0)
     lo, hi = float(np.percentile(prof, 5)), float(np.percentile(prof, 95))
     if not hi > lo:
         return float("nan")
