@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from asynhdr.colour import colour_errors, colour_scene
-from asynhdr.io.images import read_image
+from asynhdr.io.colour_images import read_rgb_radiance
 
 
 def _data_dir() -> Path:
@@ -41,7 +41,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{args.scene} not found (set ASYNHDR_DATA)")
         return 1
     exe = Path(sys.executable).with_name("asynhdr")
-    truth = colour_scene(read_image(args.scene), width=args.width, height=args.height).rgb
+    truth = colour_scene(read_rgb_radiance(args.scene)[0], width=args.width, height=args.height).rgb
     print(f"{args.scene.name}, {args.width}x{args.height}, one cycle, --l-const "
           f"{args.l_const}, invert, malvar demosaicing")
     print("| preset | dE00 median | mean | p95 | RMS ln error R, G, B | pixels left out |")
@@ -57,7 +57,7 @@ def main(argv: list[str] | None = None) -> int:
             subprocess.run([str(exe), "reconstruct", str(rec), "--method", "invert",
                             "-o", str(out), "--formats", "exr"], check=True,
                            capture_output=True)
-            rgb = read_image(sorted(out.glob("*.exr"))[-1])
+            rgb = read_rgb_radiance(sorted(out.glob("*.exr"))[-1])[0]
             e = colour_errors(rgb, truth)
             left = float(np.mean(~(np.all(rgb > 0, axis=-1) & np.all(truth > 0, axis=-1))))
             rms = ", ".join(f"{v:.3f}" for v in e["rms_log_error"])
