@@ -316,7 +316,7 @@ def _eval(mode, g, m, end, exact, v0a, v0b, rows, g0, dlog, locate, inv_h):
     return va + w * (vb - va), (vb - va) / dlog, (da + w * (db - da)) * inv_h[k]
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _moment(mode, g, t, p, lo, hi, dead, con, coff, u, exact, v0a, v0b, rows, g0, dlog,
             locate, inv_h, wmax, skip, skip2):
     """``sum_i r_i(g)`` at fixed thresholds and ``u``: rises with ``g`` during a ramp. With a
@@ -391,7 +391,7 @@ def _solve4(h, b, x, lmat, y, z):
     return True, v00
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
             rows, g0, dlog, locate, inv_h, wmax, h, b, first_var, skip, skip2, stat):
     """Accumulate the Gauss-Newton normal equations of the events ``lo..hi`` at
@@ -504,7 +504,7 @@ def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exac
     return chi2
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _initial(net, net_g, net_v):
     """``g`` where the model's net level change over the window, ``net_v`` (rising along
     ``net_g``), equals ``net`` (linear interpolation, clamped)."""
