@@ -661,7 +661,8 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
     if fixed:
         _gauss_newton(gp, lo, hi, t, p, mode, dead, sr2, tq2, eq2, 0.0, exact, v0a, v0b, rows,
                       g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp,
-                      sgp, 0, -1, -1, h, bvec, x, lmat, wy, wz, stat, res)
+                      sgp, np.int64(0), np.int64(-1), np.int64(-1), h, bvec, x, lmat, wy, wz, stat,
+                      res)
         out[0] = gp
         out[1] = math.sqrt(res[1]) if res[1] == res[1] and res[1] >= 0.0 else np.nan
         out[2] = c1
@@ -674,8 +675,9 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
     best_c2 = c2
     best_obj = np.inf
     n = hi - lo
-    skip = -1
-    skip2 = -1
+    # typed int64 from the start: literals would compile every callee once more
+    skip = np.int64(-1)
+    skip2 = np.int64(-1)
     n_try = 1
     cand = 0
     collapsed = False
@@ -692,7 +694,7 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
                        inv_h, wmax, g_lo, g_hi, net_g, net_v, c1, c2, mu_u, skip, skip2)
         _gauss_newton(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
                       g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp,
-                      sgp, _MAX_ITER, skip, skip2, h, bvec, x, lmat, wy, wz, stat, res)
+                      sgp, np.int64(_MAX_ITER), skip, skip2, h, bvec, x, lmat, wy, wz, stat, res)
         n_bg = (1 if skip >= 0 else 0) + (1 if skip2 >= 0 else 0)
         n_eq = n - n_bg
         if res[5] > _CHI2_RESCUE * n_eq + 2.0:
@@ -718,8 +720,8 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
                     gs += step
             _gauss_newton(gbest, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
                           v0b, rows, g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, s1,
-                          s2, su, mu_u, gp, sgp, _MAX_ITER, skip, skip2, h, bvec, x, lmat, wy, wz,
-                          stat, res)
+                          s2, su, mu_u, gp, sgp, np.int64(_MAX_ITER), skip, skip2, h, bvec, x,
+                          lmat, wy, wz, stat, res)
         # the unweighted objective of this hypothesis (stat from the last pass)
         obj = stat[2] + ((res[3] - c1) / s1) ** 2 + ((res[4] - c2) / s2) ** 2 \
             + ((res[2] - mu_u) / su) ** 2 + _OUTLIER_PENALTY * n_bg

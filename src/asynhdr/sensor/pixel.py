@@ -607,8 +607,7 @@ def fire_cycle(
     idx = (np.searchsorted(s, np.arange(math.ceil(float(s[-1])) + 1, dtype=np.float64),
                            side="right") - 1).astype(np.int64)
     bound = np.empty(n, dtype=np.int64)
-    # a slot holds a time bin: 16 bits while a cycle's bins fit
-    slot_dtype = np.uint16 if nbins <= 1 << 16 else np.int32
+    slot_dtype = np.int32  # a slot holds a time bin (one compiled kernel for any cycle length)
     c_scale = 1.0
     saved = state.copy()
     for _attempt in range(8):
