@@ -739,12 +739,12 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
                 collapsed = True
                 n_try = 1 + n
             elif stat[0] >= _OUTLIER_Z2 and stat[1] >= 0:
-                skip = int(stat[1])
+                skip = np.int64(stat[1])
                 n_try = 2
         elif (attempt == n_try - 1 and not collapsed and skip >= 0 and skip2 < 0 and improved
               and stat[0] >= _OUTLIER_Z2 and stat[1] >= 0 and n >= 5):
             # a second background event in the same cycle
-            skip2 = int(stat[1])
+            skip2 = np.int64(stat[1])
             n_try += 1
         attempt += 1
     flag = 0.0
