@@ -107,7 +107,8 @@ _MAX_ITER = 16
 _TOL_G = 1e-3
 _MAX_STEP_G = 1.0
 _BLOCK = 256
-_CHI2_RESCUE = 4.0
+_CHI2_RESCUE = 2.0
+_SD_RESCUE = 0.2
 _OUTLIER_Z2 = 16.0
 _OUTLIER_PENALTY = 12.0
 _SCAN_STEP = 0.2
@@ -641,6 +642,36 @@ def _gauss_newton(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v
     res[5] = chi2
 
 
+@nb.njit(cache=True, inline="always")
+def _objective(chi2, res, c1, c2, s1, s2, mu_u, su):
+    """The unweighted chi-square of a fit ``res`` with its priors' terms."""
+    return chi2 + ((res[3] - c1) / s1) ** 2 + ((res[4] - c2) / s2) ** 2 \
+        + ((res[2] - mu_u) / su) ** 2
+
+
+@nb.njit(cache=True)
+def _threshold_gain(h, b, s1, s2, x, lmat, wy, wz):
+    """How much the chi-square of the normal equations ``h, b`` (nominal thresholds, ``g``
+    and ``u`` held) falls when ``c_on`` and ``c_off`` move to their best values under
+    their priors: ``b_c^T H_c^-1 b_c`` (exact for residuals linear in the thresholds).
+    Destroys ``h`` and ``b``."""
+    for a2 in range(4):
+        for c in range(a2 + 1, 4):
+            h[a2, c] = h[c, a2]
+    for k in range(2):
+        for c in range(4):
+            h[k, c] = 0.0
+            h[c, k] = 0.0
+        h[k, k] = 1.0
+        b[k] = 0.0
+    h[2, 2] += 1.0 / (s1 * s1)
+    h[3, 3] += 1.0 / (s2 * s2)
+    ok, _ = _solve4(h, b, x, lmat, wy, wz)
+    if not ok:
+        return 0.0
+    return b[2] * x[2] + b[3] * x[3]
+
+
 @nb.njit(cache=True)
 def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
                dlog, locate, inv_h, wmax, g_lo, g_hi, net_g, net_v, c1, c2, s1, s2, gp, sgp,
@@ -649,7 +680,8 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
     ``u_sd > 0``: the pixel starts settled at its reference (``u ~ N(0, u_sd^2)``).
     ``stat`` (4) and ``res`` (6) are work space.
 
-    The fit: a start (:func:`_start`), Gauss-Newton; a coarse scan when the fit is poor;
+    The fit: a start (:func:`_start`), Gauss-Newton; when the fit is poor or vague, a scan
+    of the profile objective (:func:`_threshold_gain`) over the range, kept when better;
     and, when background events are modelled, the same again with the worst event taken
     for a background event, kept when its fit is better by more than the price of one
     such event (:data:`_OUTLIER_PENALTY` in chi-square units)."""
@@ -697,16 +729,22 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
                       sgp, np.int64(_MAX_ITER), skip, skip2, h, bvec, x, lmat, wy, wz, stat, res)
         n_bg = (1 if skip >= 0 else 0) + (1 if skip2 >= 0 else 0)
         n_eq = n - n_bg
-        if res[5] > _CHI2_RESCUE * n_eq + 2.0:
-            # a poor fit (a wrong local optimum): restart from the best of a coarse scan
-            # (coarse to fine: steps of 4 x _SCAN_STEP over the range, then _SCAN_STEP
-            # around the best)
+        if (res[5] > n_eq + _CHI2_RESCUE * math.sqrt(2.0 * n_eq) + 2.0
+                or not res[1] < _SD_RESCUE * _SD_RESCUE):
+            # a poor fit (chi-square beyond its spread) or a vague one (a plateau where
+            # the reference path alone explains the events): perhaps a wrong optimum; restart
+            # from the best of a coarse scan of the profile objective (the thresholds at
+            # their best for each g), coarse to fine: steps of 2 x _SCAN_STEP over the
+            # range, then _SCAN_STEP / 2 around the best; keep whichever fit is better
+            obj0 = _objective(stat[2], res, c1, c2, s1, s2, mu_u, su)
+            r0, r1, r2, r3, r4, r5 = res[0], res[1], res[2], res[3], res[4], res[5]
+            st2 = stat[2]
             best = np.inf
             gbest = res[0]
             for level in range(2):
-                step = _SCAN_STEP * (4.0 if level == 0 else 1.0)
-                a0 = g_lo if level == 0 else max(g_lo, gbest - 4.0 * _SCAN_STEP)
-                a1 = g_hi if level == 0 else min(g_hi, gbest + 4.0 * _SCAN_STEP)
+                step = _SCAN_STEP * (2.0 if level == 0 else 0.5)
+                a0 = g_lo if level == 0 else max(g_lo, gbest - 2.0 * _SCAN_STEP)
+                a1 = g_hi if level == 0 else min(g_hi, gbest + 2.0 * _SCAN_STEP)
                 gs = a0
                 while gs <= a1:
                     h[:, :] = 0.0
@@ -714,6 +752,7 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
                     cs = _normal(mode, gs, mu_u, c1, c2, t, p, lo, hi, dead, sr2, tq2, eq2,
                                  0.0, exact, v0a, v0b, rows, g0, dlog, locate, inv_h, wmax, h,
                                  bvec, su * su, skip, skip2, stat)
+                    cs -= _threshold_gain(h, bvec, s1, s2, x, lmat, wy, wz)
                     if cs < best:
                         best = cs
                         gbest = gs
@@ -722,9 +761,11 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
                           v0b, rows, g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, s1,
                           s2, su, mu_u, gp, sgp, np.int64(_MAX_ITER), skip, skip2, h, bvec, x,
                           lmat, wy, wz, stat, res)
+            if _objective(stat[2], res, c1, c2, s1, s2, mu_u, su) > obj0:
+                res[0], res[1], res[2], res[3], res[4], res[5] = r0, r1, r2, r3, r4, r5
+                stat[2] = st2
         # the unweighted objective of this hypothesis (stat from the last pass)
-        obj = stat[2] + ((res[3] - c1) / s1) ** 2 + ((res[4] - c2) / s2) ** 2 \
-            + ((res[2] - mu_u) / su) ** 2 + _OUTLIER_PENALTY * n_bg
+        obj = _objective(stat[2], res, c1, c2, s1, s2, mu_u, su) + _OUTLIER_PENALTY * n_bg
         improved = obj < best_obj
         if improved:
             best_obj = obj
