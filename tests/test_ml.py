@@ -77,8 +77,7 @@ def test_uncalibrated_dark_pixels_find_the_likelihoods_optimum() -> None:
     # the events' total drop says little about L, and what does is how evenly it is cut
     # into thresholds. The likelihood has a narrow optimum at the truth and a plateau at
     # L -> 0 where the reference path alone explains the events; a start on the plateau
-    # must not be kept. (A fit that stopped there: 3.9 % NaN, 21 % of pixels off by more
-    # than a factor e.)
+    # must not be kept (a fit that stopped there left 4.9 % of these pixels NaN).
     rig = default_rig("imx636")
     sensor = get_preset("imx636")
     w, h = 50, 60
