@@ -109,6 +109,7 @@ _MAX_STEP_G = 1.0
 _BLOCK = 256
 _CHI2_RESCUE = 2.0
 _SD_RESCUE = 0.2
+_VAR_INFORMED = 1.0
 _OUTLIER_Z2 = 16.0
 _OUTLIER_PENALTY = 12.0
 _SCAN_STEP = 0.2
@@ -706,6 +707,7 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
     best_c1 = c1
     best_c2 = c2
     best_obj = np.inf
+    best_informed = False
     n = hi - lo
     # typed int64 from the start: literals would compile every callee once more
     skip = np.int64(-1)
@@ -761,14 +763,26 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
                           v0b, rows, g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, s1,
                           s2, su, mu_u, gp, sgp, np.int64(_MAX_ITER), skip, skip2, h, bvec, x,
                           lmat, wy, wz, stat, res)
-            if _objective(stat[2], res, c1, c2, s1, s2, mu_u, su) > obj0:
+            # a fit where ln L has no information (a plateau: the events are explained
+            # whatever L is) does not replace one that has it, whatever its objective
+            informed = res[1] < _VAR_INFORMED
+            if (_objective(stat[2], res, c1, c2, s1, s2, mu_u, su) > obj0
+                    or (r1 < _VAR_INFORMED and not informed)):
                 res[0], res[1], res[2], res[3], res[4], res[5] = r0, r1, r2, r3, r4, r5
                 stat[2] = st2
         # the unweighted objective of this hypothesis (stat from the last pass)
         obj = _objective(stat[2], res, c1, c2, s1, s2, mu_u, su) + _OUTLIER_PENALTY * n_bg
-        improved = obj < best_obj
+        # an informed fit (ln L identified) wins over one on a plateau; else the objective
+        informed = res[1] < _VAR_INFORMED
+        if best_obj == np.inf:
+            improved = True
+        elif informed != best_informed:
+            improved = informed
+        else:
+            improved = obj < best_obj
         if improved:
             best_obj = obj
+            best_informed = informed
             best_g = res[0]
             best_v = res[1]
             best_c1 = res[3]
