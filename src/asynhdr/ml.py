@@ -650,15 +650,25 @@ def _objective(chi2, res, c1, c2, s1, s2, mu_u, su):
         + ((res[2] - mu_u) / su) ** 2
 
 
+@nb.njit(cache=True, inline="always")
+def _preferred(obj, var, best_obj, best_var):
+    """Whether a fit (objective ``obj``, variance of ``ln L`` ``var``) is to replace the
+    best so far: a fit where ``ln L`` carries information (variance below
+    :data:`_VAR_INFORMED`) wins over one on a plateau (the events explained whatever L is),
+    whatever the objectives; between two of a kind, the lower objective."""
+    informed = var < _VAR_INFORMED
+    if informed != (best_var < _VAR_INFORMED):
+        return informed
+    return obj < best_obj
+
+
 @nb.njit(cache=True)
 def _threshold_gain(h, b, s1, s2, x, lmat, wy, wz):
     """How much the chi-square of the normal equations ``h, b`` (nominal thresholds, ``g``
     and ``u`` held) falls when ``c_on`` and ``c_off`` move to their best values under
     their priors: ``b_c^T H_c^-1 b_c`` (exact for residuals linear in the thresholds).
-    Destroys ``h`` and ``b``."""
-    for a2 in range(4):
-        for c in range(a2 + 1, 4):
-            h[a2, c] = h[c, a2]
+    Destroys ``h`` and ``b`` (:func:`_solve4` reads the lower triangle that
+    :func:`_normal` fills)."""
     for k in range(2):
         for c in range(4):
             h[k, c] = 0.0
@@ -707,7 +717,6 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
     best_c1 = c1
     best_c2 = c2
     best_obj = np.inf
-    best_informed = False
     n = hi - lo
     # typed int64 from the start: literals would compile every callee once more
     skip = np.int64(-1)
@@ -763,26 +772,15 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
                           v0b, rows, g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, s1,
                           s2, su, mu_u, gp, sgp, np.int64(_MAX_ITER), skip, skip2, h, bvec, x,
                           lmat, wy, wz, stat, res)
-            # a fit where ln L has no information (a plateau: the events are explained
-            # whatever L is) does not replace one that has it, whatever its objective
-            informed = res[1] < _VAR_INFORMED
-            if (_objective(stat[2], res, c1, c2, s1, s2, mu_u, su) > obj0
-                    or (r1 < _VAR_INFORMED and not informed)):
+            if not _preferred(_objective(stat[2], res, c1, c2, s1, s2, mu_u, su), res[1],
+                              obj0, r1):
                 res[0], res[1], res[2], res[3], res[4], res[5] = r0, r1, r2, r3, r4, r5
                 stat[2] = st2
         # the unweighted objective of this hypothesis (stat from the last pass)
         obj = _objective(stat[2], res, c1, c2, s1, s2, mu_u, su) + _OUTLIER_PENALTY * n_bg
-        # an informed fit (ln L identified) wins over one on a plateau; else the objective
-        informed = res[1] < _VAR_INFORMED
-        if best_obj == np.inf:
-            improved = True
-        elif informed != best_informed:
-            improved = informed
-        else:
-            improved = obj < best_obj
+        improved = best_obj == np.inf or _preferred(obj, res[1], best_obj, best_v)
         if improved:
             best_obj = obj
-            best_informed = informed
             best_g = res[0]
             best_v = res[1]
             best_c1 = res[3]
