@@ -283,11 +283,26 @@ def ml_model(rig: Rig, sensor: SensorParams, *, window_us: float | None = None,
 
 
 @nb.njit(cache=True, inline="always")
-def _eval(mode, g, m, end, exact, v0a, v0b, rows, g0, dlog, locate, inv_h):
-    """``(V, dV/dg, dV/dt)`` at whole µs slot ``m`` (``end``: the dead time's end; ``m < 0``:
-    the cycle start) for ``g = ln L``."""
+def _at_g(mode, g, g0, dlog, nr):
+    """What :func:`_eval` needs of ``g = ln L``, computed once per pass over the events:
+    the grid row ``j`` below ``g`` and the weight ``w`` of the row above (mode 1), or
+    ``L`` itself (mode 0)."""
     if mode == 0:
-        e = math.exp(g)
+        return 0, 0.0, math.exp(g)
+    x = (g - g0) / dlog
+    j = int(math.floor(x))  # noqa: RUF046 (numba)
+    if j < 0:
+        j = 0
+    elif j > nr - 2:
+        j = nr - 2
+    return j, x - j, 0.0
+
+
+@nb.njit(cache=True, inline="always")
+def _eval(mode, j, w, e, m, end, exact, v0a, v0b, rows, dlog, locate, inv_h):
+    """``(V, dV/dg, dV/dt)`` at whole µs slot ``m`` (``end``: the dead time's end; ``m < 0``:
+    the cycle start) for the ``g`` that :func:`_at_g` gave ``(j, w, e)``."""
+    if mode == 0:
         if m < 0:
             irr = v0a * e + v0b
             return math.log(irr), v0a * e / irr, 0.0
@@ -296,14 +311,6 @@ def _eval(mode, g, m, end, exact, v0a, v0b, rows, g0, dlog, locate, inv_h):
         b = exact[o + 1, m]
         irr = a * e + b
         return math.log(irr), a * e / irr, (exact[o + 2, m] * e + exact[o + 3, m]) / irr
-    x = (g - g0) / dlog
-    nr = rows.shape[1]
-    j = int(math.floor(x))  # noqa: RUF046 (numba)
-    if j < 0:
-        j = 0
-    elif j > nr - 2:
-        j = nr - 2
-    w = x - j
     if m < 0:
         va = rows[0, j, 0]
         vb = rows[0, j + 1, 0]
@@ -325,7 +332,8 @@ def _moment(mode, g, t, p, lo, hi, dead, con, coff, u, exact, v0a, v0b, rows, g0
     dead time the first event is left out (its reference, ``u``, is unknown), unless it
     is the only one. Event ``skip`` is a background event (see :func:`_normal`)."""
     acc = 0.0
-    vs, _, _ = _eval(mode, g, -1, False, exact, v0a, v0b, rows, g0, dlog, locate, inv_h)
+    jg, wg, eg = _at_g(mode, g, g0, dlog, rows.shape[1])
+    vs, _, _ = _eval(mode, jg, wg, eg, -1, False, exact, v0a, v0b, rows, dlog, locate, inv_h)
     level = 0.0
     base = vs + u
     prev = -1
@@ -333,7 +341,8 @@ def _moment(mode, g, t, p, lo, hi, dead, con, coff, u, exact, v0a, v0b, rows, g0
         m = t[i]
         if m >= wmax:
             m = wmax - 1
-        vc, _, _ = _eval(mode, g, m, False, exact, v0a, v0b, rows, g0, dlog, locate, inv_h)
+        vc, _, _ = _eval(mode, jg, wg, eg, m, False, exact, v0a, v0b, rows, dlog, locate,
+                         inv_h)
         if i == skip or i == skip2:
             prev = m
             base = vc
@@ -345,8 +354,8 @@ def _moment(mode, g, t, p, lo, hi, dead, con, coff, u, exact, v0a, v0b, rows, g0
                 if hi - lo == 1:
                     acc += vc - vs - u - step
             else:
-                ref, _, _ = _eval(mode, g, prev, True, exact, v0a, v0b, rows, g0, dlog,
-                                  locate, inv_h)
+                ref, _, _ = _eval(mode, jg, wg, eg, prev, True, exact, v0a, v0b, rows,
+                                  dlog, locate, inv_h)
                 acc += vc - ref - step
             prev = m
         else:
@@ -405,7 +414,9 @@ def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exac
     ``(r / s)^2``, the index of its event, the unweighted chi-square and the number of
     events the outlier weights take for signal."""
     chi2 = 0.0
-    vs, dgs, _ = _eval(mode, g, -1, False, exact, v0a, v0b, rows, g0, dlog, locate, inv_h)
+    jg, wg, eg = _at_g(mode, g, g0, dlog, rows.shape[1])
+    vs, dgs, _ = _eval(mode, jg, wg, eg, -1, False, exact, v0a, v0b, rows, dlog, locate,
+                       inv_h)
     n_on = 0.0
     n_off = 0.0
     prev = -1
@@ -413,16 +424,18 @@ def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exac
     base = vs
     dbase = dgs
     has_u = 1.0
-    stat[0] = 0.0
-    stat[1] = -1.0
-    stat[2] = 0.0
-    stat[3] = 0.0
+    z_max = 0.0
+    i_max = -1
+    z_sum = 0.0
+    n_signal = 0.0
+    b0 = b1 = b2 = b3 = 0.0
+    h00 = h10 = h20 = h30 = h11 = h21 = h31 = h22 = h32 = h33 = 0.0
     for i in range(lo, hi):
         m = t[i]
         if m >= wmax:
             m = wmax - 1
-        vc, dgc, dtc = _eval(mode, g, m, False, exact, v0a, v0b, rows, g0, dlog, locate,
-                             inv_h)
+        vc, dgc, dtc = _eval(mode, jg, wg, eg, m, False, exact, v0a, v0b, rows, dlog,
+                             locate, inv_h)
         if i == skip or i == skip2:
             if dead:
                 prev = m
@@ -446,8 +459,8 @@ def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exac
                 j1 = -1.0
                 var = sr2 + dtc * dtc * tq2 + first_var
             else:
-                ref, dref, dte = _eval(mode, g, prev, True, exact, v0a, v0b, rows, g0, dlog,
-                                       locate, inv_h)
+                ref, dref, dte = _eval(mode, jg, wg, eg, prev, True, exact, v0a, v0b,
+                                       rows, dlog, locate, inv_h)
                 var = sr2 + dtc * dtc * tq2 + dte * dte * eq2
             if p[i] > 0:
                 r = vc - ref - con
@@ -472,37 +485,56 @@ def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exac
             var = 1e-12
         w = 1.0 / var
         z2 = r * r * w
-        stat[2] += z2
-        if z2 > stat[0]:
-            stat[0] = z2
-            stat[1] = i
+        z_sum += z2
+        if z2 > z_max:
+            z_max = z2
+            i_max = i
         if lam > 0.0:
             sd = math.sqrt(var)
             f = math.exp(-0.5 * z2) * abs(dtc) / (sd * 2.5066282746310002)
             gam = f / (f + lam)
             w *= gam
-            stat[3] += gam
+            n_signal += gam
         else:
-            stat[3] += 1.0
+            n_signal += 1.0
         wr = w * r
         chi2 += wr * r
-        b[0] -= wr * j0
-        b[1] -= wr * j1
-        b[2] -= wr * j2
-        b[3] -= wr * j3
+        b0 -= wr * j0
+        b1 -= wr * j1
+        b2 -= wr * j2
+        b3 -= wr * j3
         w0 = w * j0
-        h[0, 0] += w0 * j0
-        h[1, 0] += w0 * j1
-        h[2, 0] += w0 * j2
-        h[3, 0] += w0 * j3
+        h00 += w0 * j0
+        h10 += w0 * j1
+        h20 += w0 * j2
+        h30 += w0 * j3
         w1 = w * j1
-        h[1, 1] += w1 * j1
-        h[2, 1] += w1 * j2
-        h[3, 1] += w1 * j3
+        h11 += w1 * j1
+        h21 += w1 * j2
+        h31 += w1 * j3
         w2 = w * j2
-        h[2, 2] += w2 * j2
-        h[3, 2] += w2 * j3
-        h[3, 3] += w * j3 * j3
+        h22 += w2 * j2
+        h32 += w2 * j3
+        h33 += w * j3 * j3
+    # the sums live in registers during the loop (stores into h would be reloaded each event)
+    b[0] += b0
+    b[1] += b1
+    b[2] += b2
+    b[3] += b3
+    h[0, 0] += h00
+    h[1, 0] += h10
+    h[2, 0] += h20
+    h[3, 0] += h30
+    h[1, 1] += h11
+    h[2, 1] += h21
+    h[3, 1] += h31
+    h[2, 2] += h22
+    h[3, 2] += h32
+    h[3, 3] += h33
+    stat[0] = z_max
+    stat[1] = i_max
+    stat[2] = z_sum
+    stat[3] = n_signal
     return chi2
 
 
@@ -663,36 +695,122 @@ def _preferred(obj, var, best_obj, best_var):
 
 
 @nb.njit(cache=True)
-def _threshold_gain(h, b, s1, s2, x, lmat, wy, wz):
-    """How much the chi-square of the normal equations ``h, b`` (nominal thresholds, ``g``
-    and ``u`` held) falls when ``c_on`` and ``c_off`` move to their best values under
-    their priors: ``b_c^T H_c^-1 b_c`` (exact for residuals linear in the thresholds).
-    Destroys ``h`` and ``b`` (:func:`_solve4` reads the lower triangle that
-    :func:`_normal` fills)."""
-    for k in range(2):
-        for c in range(4):
-            h[k, c] = 0.0
-            h[c, k] = 0.0
-        h[k, k] = 1.0
-        b[k] = 0.0
-    h[2, 2] += 1.0 / (s1 * s1)
-    h[3, 3] += 1.0 / (s2 * s2)
-    ok, _ = _solve4(h, b, x, lmat, wy, wz)
-    if not ok:
-        return 0.0
-    return b[2] * x[2] + b[3] * x[3]
+def _profile_scan(a0, step, n_g, mode, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, exact,
+                  v0a, v0b, rows, g0, dlog, locate, inv_h, wmax, uu, first_var, s1, s2, skip,
+                  skip2, work):
+    """The ``g`` of ``a0 + i step`` (``i < n_g``) where the profile objective is least: the
+    chi-square of :func:`_normal`'s equations (plain least squares, ``u`` at ``uu`` with
+    ``first_var`` added to its equations' variance) less what the thresholds gain by moving
+    to their best values under their priors, ``b_c^T H_c^-1 b_c`` (exact, the residuals
+    being linear in the thresholds). One pass over the events for every ``g`` at once:
+    only a residual's value and variance depend on ``g``, and the tables' rows of one time
+    are read together. ``work`` holds at least ``(n_g, 10)``."""
+    nr = rows.shape[1]
+    for q in range(n_g):
+        jq, wq, eq = _at_g(mode, a0 + q * step, g0, dlog, nr)
+        vs, _, _ = _eval(mode, jq, wq, eq, -1, False, exact, v0a, v0b, rows, dlog, locate,
+                         inv_h)
+        work[q, 0] = jq
+        work[q, 1] = wq
+        work[q, 2] = eq
+        work[q, 3] = vs  # the level the walk starts from (no dead time)
+        for c in range(4, 10):
+            work[q, c] = 0.0  # chi2, H_c (on-on, off-on, off-off), b_c (on, off)
+    n_on = 0.0
+    n_off = 0.0
+    prev = -1
+    k_ev = 0
+    has_u = 1.0
+    for i in range(lo, hi):
+        m = t[i]
+        if m >= wmax:
+            m = wmax - 1
+        if i == skip or i == skip2:
+            if dead:
+                prev = m
+            else:
+                for q in range(n_g):
+                    jq = int(work[q, 0])
+                    work[q, 3], _, _ = _eval(mode, jq, work[q, 1], work[q, 2], m, False,
+                                             exact, v0a, v0b, rows, dlog, locate, inv_h)
+                has_u = 0.0
+                n_on = 0.0
+                n_off = 0.0
+                k_ev = 0
+            continue
+        k_ev += 1
+        on = p[i] > 0
+        if dead:
+            j2 = -1.0 if on else 0.0
+            j3 = 0.0 if on else 1.0
+            step_c = con if on else -coff
+        else:
+            if on:
+                n_on += 1.0
+            else:
+                n_off += 1.0
+            j2 = -n_on
+            j3 = n_off
+            step_c = con * n_on - coff * n_off
+        for q in range(n_g):
+            jq = int(work[q, 0])
+            wq = work[q, 1]
+            eq = work[q, 2]
+            vc, _, dtc = _eval(mode, jq, wq, eq, m, False, exact, v0a, v0b, rows, dlog, locate,
+                               inv_h)
+            if dead:
+                if prev < 0:
+                    r = vc - work[q, 3] - uu - step_c
+                    var = sr2 + dtc * dtc * tq2 + first_var
+                else:
+                    ref, _, dte = _eval(mode, jq, wq, eq, prev, True, exact, v0a, v0b, rows,
+                                        dlog, locate, inv_h)
+                    r = vc - ref - step_c
+                    var = sr2 + dtc * dtc * tq2 + dte * dte * eq2
+            else:
+                r = vc - work[q, 3] - has_u * uu - step_c
+                var = sr2 * k_ev + dtc * dtc * tq2 + has_u * first_var
+            if var < 1e-12:
+                var = 1e-12
+            w = 1.0 / var
+            wr = w * r
+            work[q, 4] += wr * r
+            work[q, 5] += w * j2 * j2
+            work[q, 6] += w * j3 * j2
+            work[q, 7] += w * j3 * j3
+            work[q, 8] -= wr * j2
+            work[q, 9] -= wr * j3
+        if dead:
+            prev = m
+    best = np.inf
+    g_best = a0
+    p1 = 1.0 / (s1 * s1)
+    p2 = 1.0 / (s2 * s2)
+    for q in range(n_g):
+        h22 = work[q, 5] + p1
+        h32 = work[q, 6]
+        h33 = work[q, 7] + p2
+        b2 = work[q, 8]
+        b3 = work[q, 9]
+        det = h22 * h33 - h32 * h32
+        gain = (h33 * b2 * b2 - 2.0 * h32 * b2 * b3 + h22 * b3 * b3) / det if det > 0.0 else 0.0
+        cs = work[q, 4] - gain
+        if cs < best:
+            best = cs
+            g_best = a0 + q * step
+    return g_best
 
 
 @nb.njit(cache=True)
 def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
                dlog, locate, inv_h, wmax, g_lo, g_hi, net_g, net_v, c1, c2, s1, s2, gp, sgp,
-               fixed, h, bvec, x, lmat, wy, wz, out, u_sd, stat, res):
+               fixed, h, bvec, x, lmat, wy, wz, out, u_sd, stat, res, scan):
     """One pixel (module docstring). Writes ``(g, sd, c_on, c_off, flag)`` into ``out``.
     ``u_sd > 0``: the pixel starts settled at its reference (``u ~ N(0, u_sd^2)``).
-    ``stat`` (4) and ``res`` (6) are work space.
+    ``stat`` (4), ``res`` (6) and ``scan`` (:func:`_profile_scan`) are work space.
 
     The fit: a start (:func:`_start`), Gauss-Newton; when the fit is poor or vague, a scan
-    of the profile objective (:func:`_threshold_gain`) over the range, kept when better;
+    of the profile objective (:func:`_profile_scan`) over the range, kept when better;
     and, when background events are modelled, the same again with the worst event taken
     for a background event, kept when its fit is better by more than the price of one
     such event (:data:`_OUTLIER_PENALTY` in chi-square units)."""
@@ -750,24 +868,15 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
             obj0 = _objective(stat[2], res, c1, c2, s1, s2, mu_u, su)
             r0, r1, r2, r3, r4, r5 = res[0], res[1], res[2], res[3], res[4], res[5]
             st2 = stat[2]
-            best = np.inf
             gbest = res[0]
             for level in range(2):
                 step = _SCAN_STEP * (2.0 if level == 0 else 0.5)
                 a0 = g_lo if level == 0 else max(g_lo, gbest - 2.0 * _SCAN_STEP)
                 a1 = g_hi if level == 0 else min(g_hi, gbest + 2.0 * _SCAN_STEP)
-                gs = a0
-                while gs <= a1:
-                    h[:, :] = 0.0
-                    bvec[:] = 0.0
-                    cs = _normal(mode, gs, mu_u, c1, c2, t, p, lo, hi, dead, sr2, tq2, eq2,
-                                 0.0, exact, v0a, v0b, rows, g0, dlog, locate, inv_h, wmax, h,
-                                 bvec, su * su, skip, skip2, stat)
-                    cs -= _threshold_gain(h, bvec, s1, s2, x, lmat, wy, wz)
-                    if cs < best:
-                        best = cs
-                        gbest = gs
-                    gs += step
+                n_g = min(int((a1 - a0) / step + 1e-9) + 1, scan.shape[0])
+                gbest = _profile_scan(a0, step, n_g, mode, c1, c2, t, p, lo, hi, dead, sr2,
+                                      tq2, eq2, exact, v0a, v0b, rows, g0, dlog, locate,
+                                      inv_h, wmax, mu_u, su * su, s1, s2, skip, skip2, scan)
             _gauss_newton(gbest, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
                           v0b, rows, g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, s1,
                           s2, su, mu_u, gp, sgp, np.int64(_MAX_ITER), skip, skip2, h, bvec, x,
@@ -830,6 +939,7 @@ def _estimate_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
         res = np.zeros(5)
         stat = np.zeros(4)
         work = np.zeros(6)
+        scan = np.zeros((int((g_hi - g_lo) / (2.0 * _SCAN_STEP)) + 2, 10))
         for px in range(blk * _BLOCK, min(npx, (blk + 1) * _BLOCK)):
             lo = off[px]
             hi = off[px + 1]
@@ -843,7 +953,8 @@ def _estimate_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
             _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
                        g0, dlog, locate, inv_h, wmax, g_lo, g_hi, net_g, net_v, con0[px],
                        coff0[px], max(scon[px], 1e-6), max(scoff[px], 1e-6), g_prior[px],
-                       sg_prior[px], fixed, h, bvec, x, lmat, wy, wz, res, u_sd, stat, work)
+                       sg_prior[px], fixed, h, bvec, x, lmat, wy, wz, res, u_sd, stat, work,
+                       scan)
             out_g[px] = res[0]
             out_sd[px] = res[1]
             out_con[px] = res[2]
