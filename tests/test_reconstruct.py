@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from asynhdr.calibrate import estimate_cmap
+from asynhdr.calibrate import CMAP_MAX_GAIN, cmap_from_levels, estimate_cmap
 from asynhdr.events import Recording, make_events, make_triggers, validate_events
 from asynhdr.reconstruct import (
     METHODS,
@@ -133,6 +133,21 @@ def test_cmap_from_flat_fields_removes_threshold_mismatch() -> None:
     caps = [simulate(flat, rig=rig, sensor="ideal", thresholds=(c_on, c_on))]
     m = estimate_cmap(caps).maps["raw"]
     assert m[3, 7] > 1.2 and abs(float(np.median(m)) - 1.0) < 1e-6
+
+
+def test_cmap_keeps_nominal_thresholds_where_the_flat_level_measures_none() -> None:
+    # levels summed over 4 cycles: median 2.0 per cycle; 0.5 -> gain 4 (kept), 1e-3 ->
+    # gain 2000 (noise, not a threshold), -1 (wrong sign) and 0 (no events) -> 1
+    per_cycle = np.full((3, 4), 2.0)
+    per_cycle[0, 1] = 0.5
+    per_cycle[1, 2] = 1e-3
+    per_cycle[2, 0] = -1.0
+    per_cycle[2, 3] = 0.0
+    m, n_nominal = cmap_from_levels(4 * per_cycle, 4, name="test")
+    assert m[0, 1] == pytest.approx(4.0)
+    assert m[1, 2] == 1.0 and m[2, 0] == 1.0 and m[2, 3] == 1.0
+    assert n_nominal == 3
+    assert m.max() <= CMAP_MAX_GAIN and m.min() >= 1.0 / CMAP_MAX_GAIN
 
 
 def test_windows_from_triggers_and_from_metadata() -> None:

@@ -16,6 +16,13 @@ differently, one map is estimated per weighting; the ``raw`` map (events counted
 per-pixel threshold ratio itself, which the methods that use thresholds directly take
 (their record's ``cmap`` kind is ``"threshold"``).
 
+A pixel keeps the nominal thresholds (map 1, counted in the metadata and a warning) when
+its flat-field level does not measure a threshold: no events, a level of the wrong sign,
+or a correction beyond :data:`CMAP_MAX_GAIN` either way. Without the last guard a pixel
+whose weighted events happen to cancel on the flat field (the exponential weighting
+gives late events weights near zero) gets a gain of thousands, and its reconstruction
+of a scene leaves float32's range.
+
 Captures are :class:`~asynhdr.source.Source` objects or recordings, read one at a time.
 """
 
@@ -40,9 +47,45 @@ from asynhdr.reconstruct import (
 )
 from asynhdr.source import Progress, Source, as_source
 
-__all__ = ["CMap", "cmap_key", "estimate_cmap"]
+__all__ = [
+    "CMAP_MAX_GAIN",
+    "CMap",
+    "cmap_from_levels",
+    "cmap_key",
+    "estimate_cmap",
+]
 
 logger = logging.getLogger(__name__)
+
+
+CMAP_MAX_GAIN = 10.0
+"""The largest correction a c-map applies, either way. Thresholds of one sensor differ by
+a few percent to tens of percent between pixels; a factor of ten is not a threshold but
+a pixel that is hot, dead or whose flat-field level is noise."""
+
+
+
+def cmap_from_levels(total: np.ndarray, n_cycles: int, *, min_abs_level: float = 1e-6,
+                     name: str = "") -> tuple[np.ndarray, int]:
+    """One weighting's c-map, ``median(l) / l_p``, from the per-pixel sums of the level
+    ``l`` over ``n_cycles`` flat-field cycles. Pixels whose level measures no threshold
+    (module docstring) get 1; returns the map (float32) and their number, which a
+    warning names with ``name``."""
+    mean = total / n_cycles
+    valid = np.abs(mean) > min_abs_level
+    cm = np.ones(mean.shape, np.float64)
+    if valid.any():
+        ref = float(np.median(mean[valid]))
+        if ref != 0.0:
+            cm[valid] = ref / mean[valid]
+    bad = ~valid | (cm <= 0) | (cm > CMAP_MAX_GAIN) | (cm < 1.0 / CMAP_MAX_GAIN)
+    cm[bad] = 1.0
+    n_bad = int(bad.sum())
+    if n_bad:
+        logger.warning("c-map %s: %d of %d pixels keep the nominal thresholds (no events, "
+                       "a level of the wrong sign, or a correction beyond %gx)", name, n_bad,
+                       bad.size, CMAP_MAX_GAIN)
+    return cm.astype(np.float32), n_bad
 
 
 def cmap_key(method: str, *, k: float = DEFAULT_K) -> str:
@@ -144,18 +187,11 @@ def estimate_cmap(
     if shape is None or c is None:
         raise ValueError("estimate_cmap: no flat-field captures given")
     maps: dict[str, np.ndarray] = {}
+    kept: dict[str, int] = {}
     for m in methods:
-        mean = sums[m] / n_cycles
-        valid = np.abs(mean) > min_abs_level
-        ref = float(np.median(mean[valid])) if valid.any() else 0.0
-        cm = np.ones(shape, np.float64)
-        if ref != 0.0:
-            cm[valid] = ref / mean[valid]
-            bad = cm <= 0
-            cm[bad] = 1.0
-            if bad.any():
-                logger.warning("c-map %s: %d pixels of opposite sign set to 1", m, int(bad.sum()))
-        maps[cmap_key(m, k=k)] = cm.astype(np.float32)
+        key = cmap_key(m, k=k)
+        maps[key], kept[key] = cmap_from_levels(sums[m], n_cycles, min_abs_level=min_abs_level,
+                                                name=key)
     meta: dict[str, Any] = {
         "n_captures": n_caps,
         "n_cycles": n_cycles,
@@ -163,5 +199,6 @@ def estimate_cmap(
         "k": float(k),
         "threshold_on": c[0],
         "threshold_off": c[1],
+        "nominal_pixels": kept,
     }
     return CMap(maps=maps, metadata=meta)

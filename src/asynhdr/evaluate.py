@@ -202,7 +202,7 @@ def evaluate_scene(
             img = reconstruct(rec, method=m, ml_options={"thresholds": ml_thresholds})[-1]
         else:
             img = reconstruct(rec, method=m, k=k, cmap=cmap)[-1]
-        images[m] = finite_image(img)[0]
+        images[m] = finite_image(img, name=f"{name} {m}")[0]
         tick(f"{name}: reconstruct", i + 1, len(methods))
     n_events = int(rec.events.size)
     del rec

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from asynhdr.calibrate import CMap, cmap_key
+from asynhdr.calibrate import CMap, cmap_from_levels, cmap_key
 from asynhdr.events import Recording
 from asynhdr.framecam import (
     FrameCamera,
@@ -128,9 +128,10 @@ class MethodResult:
         }
 
 
-def finite_image(image: np.ndarray) -> tuple[np.ndarray, int]:
-    """The image with non-finite pixels (an overflowing ``exp`` in a reconstruction) set
-    to its largest finite value (NaN to 0), and how many there were."""
+def finite_image(image: np.ndarray, *, name: str = "image") -> tuple[np.ndarray, int]:
+    """The image with its non-finite pixels made finite, and how many there were: NaN (a
+    pixel without an estimate) becomes 0, a hole that the metrics charge in full;
+    infinity (an overflowing ``exp``) becomes the image's largest finite value."""
     img = np.asarray(image)
     bad = ~np.isfinite(img)
     n = int(bad.sum())
@@ -138,8 +139,11 @@ def finite_image(image: np.ndarray) -> tuple[np.ndarray, int]:
         return img, 0
     ok = img[~bad]
     top = float(ok.max()) if ok.size else 0.0
-    out = np.where(np.isnan(img), 0.0, np.where(bad, top, img)).astype(img.dtype)
-    logger.warning("%d non-finite pixels set to the image's largest finite value", n)
+    nan = np.isnan(img)
+    out = np.where(nan, 0.0, np.where(bad, top, img)).astype(img.dtype)
+    n_nan = int(nan.sum())
+    logger.warning("%s: %d pixels without an estimate (NaN) set to 0, %d infinite ones to "
+                   "the image's largest finite value", name, n_nan, n - n_nan)
     return out, n
 
 
@@ -151,7 +155,7 @@ def measure_chart(image: np.ndarray, scene: Scene, *, method: str, with_cmap: bo
     ``SNR_in >= 1``), the radiometric error after one global scale, grey levels."""
     if scene.rois is None or scene.truth is None or scene.densities is None:
         raise ValueError("measure_chart: the scene has no patches (use step_chart)")
-    image, n_bad = finite_image(image)
+    image, n_bad = finite_image(image, name=method)
     rois = central_rois(scene.rois, shape=region_shape)
     st = patch_stats(image, rois)
     dr = dynamic_range(st, scene.truth, has_events=has_events)
@@ -200,18 +204,14 @@ def _cmaps_from_flats(captures: Iterator[Recording], ks: Sequence[float]) -> CMa
     if n_caps == 0:
         raise ValueError("no flat-field captures")
     maps: dict[str, np.ndarray] = {}
+    kept: dict[str, int] = {}
     for (m, k), s in sums.items():
-        mean = s / n_cycles
-        valid = np.abs(mean) > 1e-6
-        cm = np.ones(mean.shape)
-        if valid.any():
-            ref = float(np.median(mean[valid]))
-            cm[valid] = ref / mean[valid]
-            cm[cm <= 0] = 1.0
-        maps[cmap_key(m, k=k)] = cm.astype(np.float32)
+        key = cmap_key(m, k=k)
+        maps[key], kept[key] = cmap_from_levels(s, n_cycles, name=key)
     return CMap(maps=maps, metadata={"n_captures": n_caps, "n_cycles": n_cycles,
                                      "methods": list(WEIGHTINGS), "k": DEFAULT_K,
-                                     "k_sweep": [float(k) for k in ks]})
+                                     "k_sweep": [float(k) for k in ks],
+                                     "nominal_pixels": kept})
 
 
 @dataclass(frozen=True, eq=False)
