@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from asynhdr import ml
-from asynhdr.design import default_rig, sequential_rig
+from asynhdr.design import default_rig, round_trip_rig, sequential_rig
 from asynhdr.events import Recording
 from asynhdr.reconstruct import CycleWindows, reconstruct
 from asynhdr.rig import Rig
@@ -151,6 +151,17 @@ def test_sequential_rig_has_no_blind_band() -> None:
     counts = np.bincount(rec.events["y"], minlength=levels.size)
     # ln 2 / 0.2 = 3.5: at least three events up and three down
     assert counts.min() >= 6, counts
+
+
+def test_round_trip_rig_crosses_twice_and_ends_where_it_began() -> None:
+    rig = round_trip_rig(period_us=50_000, l_const=100.0, a=0.15, b=0.4)
+    for w in rig.target_waveforms():
+        assert float(w(np.array([0.0]))[0]) == pytest.approx(float(w(np.array([1.0]))[0]))
+    # each half moves every signal by at least ln 2 each way: 3 + 3 events per half
+    levels = np.geomspace(0.1, 1e5, 13)
+    rec = simulate(_scene(levels, 1), rig=rig, sensor="ideal", n_cycles=1, rng=0)
+    counts = np.bincount(rec.events["y"], minlength=levels.size)
+    assert counts.min() >= 12, counts
 
 
 def test_cli_simulate_rig_out_then_reconstruct_ml_with_rig(tmp_path) -> None:

@@ -24,11 +24,22 @@ The paper's rule ``|dT2/dt| < |dT1/dt|`` is not kept (``T1`` is still while ``T2
 falls): with ``ml`` it is unnecessary, and ``asynhdr design --compare`` measures the
 rule-keeping rig (linear ramps, ``t2_stop = 0.5``) beside it.
 
+The family ``round_trip`` goes there and back within the cycle: the sequential ramps over
+``[0, a]`` and ``[a, b]``, then the same in reverse (the reference reopens over
+``[b, 2b - a]``, the scene panel closes over ``[2b - a, 2b]``), then holds where it
+started. Every pixel crosses twice per cycle, so it fires about twice the events and
+its estimate carries about twice the information, for half the time per ramp; the cycle
+ends where it began, so there is no return to hide.
+
 :func:`design` searches ``L_const``, the split ``a``, the end of the reference's ramp ``b``
 and its floor for the longest run of radiance levels whose predicted per-pixel SNR
 (``-20 log10(sigma_ln L)``, ``sigma`` the Cramér-Rao bound of :mod:`asynhdr.ml` on the
-noiseless events of the sensor preset) is at least ``min_snr_db``; the cycle length is
-the frame rate's period.
+noiseless events of the sensor preset) is at least ``min_snr_db``, over both families;
+the cycle length is the frame rate's period. Between rigs of equal range the sequential
+one is kept, and between two of one family the higher mean SNR over the run: the round
+trip doubles the events of every cycle (the readout's load and ``ml``'s time), and the
+paper's weightings and c-map lose their meaning on it (its net swing over the cycle is
+zero), so it has to buy range.
 """
 
 from __future__ import annotations
@@ -48,10 +59,13 @@ __all__ = [
     "DEFAULT_FRAME_RATE_HZ",
     "DEFAULT_SCENE_RANGE",
     "DESIGNED",
+    "FAMILIES",
+    "SPLITS",
     "DesignResult",
     "default_rig",
     "design",
     "predict",
+    "round_trip_rig",
     "sequential_rig",
 ]
 
@@ -98,6 +112,44 @@ def sequential_rig(*, period_us: int, l_const: float, a: float, b: float,
                t1=w1, t2=w2)
 
 
+def round_trip_rig(*, period_us: int, l_const: float, a: float, b: float,
+                   floor_1: float = 1e-3, floor_2: float = 1e-3, k_lens: float = 1.0,
+                   ramp_fraction: float = RAMP_FRACTION, n_knots: int = N_KNOTS) -> Rig:
+    """The ``round_trip`` rig of the module docstring: the sequential ramps over ``[0, a]``
+    and ``[a, b]``, the same in reverse over ``[b, 2b]``, then a hold at the start."""
+    if not (0.0 < a < b and 2.0 * b <= ramp_fraction < 1.0):
+        raise ValueError(f"round-trip rig: need 0 < a < b and 2 b <= ramp_fraction < 1, got "
+                         f"a={a}, b={b}, ramp_fraction={ramp_fraction}")
+    s = np.linspace(0.0, 1.0, n_knots + 1)[1:]
+    c = 2.0 * b - a
+    ph = [np.zeros(1), s * a, a + s * (b - a), b + s * (c - b), c + s * (2.0 * b - c)]
+    v1 = [np.full(1, floor_1), floor_1 ** (1.0 - s), np.ones(n_knots), np.ones(n_knots),
+          floor_1 ** s]
+    v2 = [np.ones(1), np.ones(n_knots), floor_2 ** s, floor_2 ** (1.0 - s), np.ones(n_knots)]
+    if 2.0 * b < 1.0:
+        ph.append(np.ones(1))
+        v1.append(np.full(1, floor_1))
+        v2.append(np.ones(1))
+    w1 = Waveform(np.concatenate(ph), np.concatenate(v1),
+                  name=f"round trip T1 {floor_1:g}->1->{floor_1:g}")
+    w2 = Waveform(np.concatenate(ph), np.concatenate(v2),
+                  name=f"round trip T2 1->{floor_2:g}->1")
+    return Rig(period_us=int(period_us), ramp_fraction=ramp_fraction, l_const=float(l_const),
+               k_lens=k_lens, contrast_ratio_1=1.0 / floor_1, contrast_ratio_2=1.0 / floor_2,
+               t1=w1, t2=w2)
+
+
+FAMILIES: dict[str, Callable[..., Rig]] = {"sequential": sequential_rig,
+                                           "round_trip": round_trip_rig}
+"""The rig families :func:`design` searches, by name (module docstring)."""
+
+SPLITS: dict[str, tuple[tuple[float, float], ...]] = {
+    "sequential": ((0.2, 0.55), (0.25, 0.65), (0.3, 0.8), (0.35, 0.9), (0.2, 0.9)),
+    "round_trip": ((0.1, 0.35), (0.1, 0.45), (0.15, 0.4), (0.15, 0.45), (0.2, 0.45)),
+}
+"""The phases ``(a, b)`` :func:`design` tries per family."""
+
+
 @dataclass(frozen=True, eq=False)
 class DesignResult:
     """A designed rig and what it is predicted to do.
@@ -105,7 +157,7 @@ class DesignResult:
     Attributes
     ----------
     rig : the rig.
-    params : the design's parameters (``l_const``, ``a``, ``b``, floors, period).
+    params : the design's parameters (``family``, ``l_const``, ``a``, ``b``, floors, period).
     levels : radiances evaluated (scene unit); ``snr_db`` their predicted per-pixel SNR.
     range_db : the predicted dynamic range (longest run with ``snr_db >= min_snr_db``);
         ``l_lo``, ``l_hi`` its ends.
@@ -113,7 +165,7 @@ class DesignResult:
     """
 
     rig: Rig
-    params: dict[str, float]
+    params: dict[str, Any]
     levels: np.ndarray
     snr_db: np.ndarray
     range_db: float
@@ -121,7 +173,7 @@ class DesignResult:
     l_hi: float
     min_snr_db: float
     sensor: SensorParams
-    candidates: list[dict[str, float]] = field(default_factory=list)
+    candidates: list[dict[str, Any]] = field(default_factory=list)
 
     def summary(self) -> dict[str, Any]:
         return {"params": self.params, "range_db": self.range_db, "l_lo": self.l_lo,
@@ -186,12 +238,11 @@ def design(
     contrast_ratio: float = 1000.0,
     min_snr_db: float = DEFAULT_MIN_SNR_DB,
     l_consts: Sequence[float] | None = None,
-    splits: Sequence[tuple[float, float]] = ((0.2, 0.55), (0.25, 0.65), (0.3, 0.8),
-                                            (0.35, 0.9), (0.2, 0.9)),
+    families: Sequence[str] = tuple(FAMILIES),
     n_levels: int = 27,
     progress: Callable[[int, int], None] | None = None,
 ) -> DesignResult:
-    """Choose the sequential rig (module docstring) with the widest predicted range.
+    """Choose the rig (of ``families``, module docstring) with the widest predicted range.
 
     Parameters
     ----------
@@ -202,7 +253,7 @@ def design(
     min_snr_db : per-pixel SNR a level needs to count.
     l_consts : reference radiances tried (default: eight from ``sqrt(l_min l_max) / 30``
         to ``l_max / contrast_ratio x 10``, geometric).
-    splits : ``(a, b)`` phases tried (end of the scene ramp, end of the reference ramp).
+    families : rig families tried (:data:`FAMILIES`), each over its :data:`SPLITS`.
     n_levels : radiances evaluated, log-spaced over ``[l_min, l_max]``.
     """
     sensor = get_preset(sensor) if isinstance(sensor, str) else sensor
@@ -210,6 +261,10 @@ def design(
         raise ValueError(f"design: need 0 < l_min < l_max, got {l_min}, {l_max}")
     if not (frame_rate_hz > 0 and math.isfinite(frame_rate_hz)):
         raise ValueError(f"design: frame_rate_hz must be positive, got {frame_rate_hz}")
+    unknown = [f for f in families if f not in FAMILIES]
+    if unknown or not families:
+        raise ValueError(f"design: unknown rig families {unknown}; expected some of "
+                         f"{list(FAMILIES)}")
     period = round(1e6 / frame_rate_hz)
     levels = np.geomspace(l_min, l_max, n_levels)
     if l_consts is None:
@@ -217,43 +272,50 @@ def design(
         hi = max(l_max / contrast_ratio * 10.0, lo * 2)
         l_consts = [float(x) for x in np.geomspace(lo, hi, 8)]
     floor = 1.0 / contrast_ratio
-    tried: list[dict[str, float]] = []
-    best: tuple[float, float, Rig, dict[str, float], np.ndarray] | None = None
-    total = len(l_consts) * len(splits)
+    tried: list[dict[str, Any]] = []
+    best: tuple[tuple[float, bool, float], Rig, dict[str, Any], np.ndarray] | None = None
+    total = len(l_consts) * sum(len(SPLITS[f]) for f in families)
     k = 0
-    for lc in l_consts:
-        for a, b in splits:
-            rig = sequential_rig(period_us=period, l_const=lc, a=a, b=b, floor_1=floor,
-                                 floor_2=floor)
-            snr = predict(rig, sensor, levels=levels)
-            db, lo_, hi_ = _longest_run(levels, snr >= min_snr_db)
-            mean_snr = float(np.mean(snr[(levels >= lo_) & (levels <= hi_)])) if db > 0 else 0.0
-            params = {"l_const": lc, "a": a, "b": b, "floor_1": floor, "floor_2": floor,
-                      "period_us": float(period)}
-            tried.append(dict(params, range_db=db, mean_snr_db=mean_snr))
-            key = (db, mean_snr)
-            if best is None or key > (best[0], best[1]):
-                best = (db, mean_snr, rig, params, snr)
-            k += 1
-            if progress is not None:
-                progress(k, total)
-            logger.info("design %s: L_const %.4g a %.2f b %.2f -> %.1f dB", sensor.name, lc,
-                        a, b, db)
+    for family in families:
+        for lc in l_consts:
+            for a, b in SPLITS[family]:
+                rig = FAMILIES[family](period_us=period, l_const=lc, a=a, b=b, floor_1=floor,
+                                       floor_2=floor)
+                snr = predict(rig, sensor, levels=levels)
+                db, lo_, hi_ = _longest_run(levels, snr >= min_snr_db)
+                mean_snr = (float(np.mean(snr[(levels >= lo_) & (levels <= hi_)]))
+                            if db > 0 else 0.0)
+                params: dict[str, Any] = {"family": family, "l_const": lc, "a": a, "b": b,
+                                          "floor_1": floor, "floor_2": floor,
+                                          "period_us": float(period)}
+                tried.append(dict(params, range_db=db, mean_snr_db=mean_snr))
+                key = (db, family == "sequential", mean_snr)
+                if best is None or key > best[0]:
+                    best = (key, rig, params, snr)
+                k += 1
+                if progress is not None:
+                    progress(k, total)
+                logger.info("design %s: %s L_const %.4g a %.2f b %.2f -> %.1f dB, mean SNR "
+                            "%.1f dB", sensor.name, family, lc, a, b, db, mean_snr)
     assert best is not None
-    db, _, rig, params, snr = best
-    _, lo_, hi_ = _longest_run(levels, snr >= min_snr_db)
+    _, rig, params, snr = best
+    db, lo_, hi_ = _longest_run(levels, snr >= min_snr_db)
     return DesignResult(rig=rig, params=params, levels=levels, snr_db=snr, range_db=db,
                         l_lo=lo_, l_hi=hi_, min_snr_db=min_snr_db, sensor=sensor,
                         candidates=tried)
 
 
-DESIGNED: dict[str, dict[str, float]] = {
+DESIGNED: dict[str, dict[str, Any]] = {
     # asynhdr design --preset NAME (defaults: 0.1 to 316,000 lux, 20 cycles/s, 1000:1
-    # panels, per-pixel SNR >= 20 dB); predicted range in the comment
-    "ideal": {"l_const": 278.55655932390493, "a": 0.35, "b": 0.9},  # 130 dB
-    "v2e": {"l_const": 452.8253292719891, "a": 0.35, "b": 0.9},  # 130 dB
-    "davis346": {"l_const": 3162.277660168379, "a": 0.3, "b": 0.8},  # 95 dB
-    "imx636": {"l_const": 1196.6450696489756, "a": 0.2, "b": 0.55},  # 95 dB
+    # panels, per-pixel SNR >= 20 dB); predicted range and mean SNR over it in the comment
+    "ideal": {"family": "sequential", "l_const": 278.55655932390493, "a": 0.35,
+              "b": 0.9},  # 130 dB, 74.2 dB
+    "v2e": {"family": "sequential", "l_const": 452.8253292719891, "a": 0.35,
+            "b": 0.9},  # 130 dB, 73.7 dB
+    "davis346": {"family": "round_trip", "l_const": 452.8253292719891, "a": 0.2,
+                 "b": 0.45},  # 105 dB, 26.3 dB (sequential: 95 dB)
+    "imx636": {"family": "round_trip", "l_const": 452.8253292719891, "a": 0.2,
+               "b": 0.45},  # 105 dB, 29.4 dB (sequential: 95 dB, 26.9 dB)
 }
 """The CLI's default rig per sensor preset, as ``asynhdr design --preset NAME`` chose it
 for the default scene range (:data:`DEFAULT_SCENE_RANGE`), 20 cycles per second and
@@ -265,5 +327,5 @@ def default_rig(preset: str, *, period_us: int | None = None) -> Rig:
     the ``v2e`` one)."""
     p = DESIGNED.get(preset, DESIGNED["v2e"])
     period = round(1e6 / DEFAULT_FRAME_RATE_HZ) if period_us is None else int(period_us)
-    return sequential_rig(period_us=period,
-                          l_const=p["l_const"], a=p["a"], b=p["b"])
+    return FAMILIES[str(p["family"])](period_us=period, l_const=float(p["l_const"]),
+                                      a=float(p["a"]), b=float(p["b"]))

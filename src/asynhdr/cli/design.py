@@ -36,9 +36,10 @@ def design(
                                  "cross-fade (both exponential, T2 to its floor)."),
     json_out: Path | None = typer.Option(None, "--json", help="Write every figure as JSON."),
 ) -> None:
-    """Choose L_const, the ramps' split and the reference floor that maximise the range over
-    which ml's predicted per-pixel SNR (the model's Cramér-Rao bound) is at least
-    --min-snr-db; print it and write the rig file."""
+    """Choose the rig family (sequential, or round trip: there and back in one cycle),
+    L_const and the ramps' split that maximise the range over which ml's predicted
+    per-pixel SNR (the model's Cramér-Rao bound) is at least --min-snr-db; print it and
+    write the rig file."""
     import numpy as np
 
     from asynhdr.design import _longest_run, predict
@@ -78,10 +79,15 @@ def design(
     for i, lv in enumerate(res.levels):
         table.add_row(f"{lv:.3g}", *[f"{rows[n][i]:.1f}" for n in rows])
     console.print(table)
-    console.print(f"design: L_const {p['l_const']:.4g} lux; scene panel opens over phase "
-                  f"0..{p['a']:.2f}, reference closes over {p['a']:.2f}..{p['b']:.2f} to "
-                  f"{p['floor_2']:g}, hold to {res.rig.ramp_fraction:.2f}; cycle "
-                  f"{int(p['period_us'])} µs")
+    back = ""
+    if p["family"] == "round_trip":
+        c = 2.0 * p["b"] - p["a"]
+        back = (f", reopens over {p['b']:.2f}..{c:.2f}, scene panel closes over "
+                f"{c:.2f}..{2.0 * p['b']:.2f}")
+    console.print(f"design ({p['family']}): L_const {p['l_const']:.4g} lux; scene panel opens "
+                  f"over phase 0..{p['a']:.2f}, reference closes over "
+                  f"{p['a']:.2f}..{p['b']:.2f} to {p['floor_2']:g}{back}, hold to "
+                  f"{res.rig.ramp_fraction:.2f}; cycle {int(p['period_us'])} µs")
     console.print(f"predicted range (per-pixel SNR >= {min_snr_db:g} dB): "
                   f"[bold]{res.range_db:.1f} dB[/] ({res.l_lo:.3g} to {res.l_hi:.3g} lux)")
     for name, o in others.items():
