@@ -137,8 +137,11 @@ class MlModel:
         value ``g_j = g0 + j dlog``, and its increment to ``s_{k+1}`` (mode 1).
     locate : ``(4, W)`` float64 for mode 1: grid interval and fraction at the crossing
         time and at the dead time's end; ``inv_h`` ``1 / (s[k+1] - s[k])``.
-    net_g, net_v : the model's net change of ``V`` over the window, ``net_v``, at
-        ``g = net_g`` (made non-decreasing): the fit's starting point.
+    net_g, net_v : the model's net change of ``V`` from the cycle start to slot
+        ``split_us``, ``net_v``, at ``g = net_g`` (made non-decreasing): the fit's start.
+    split_us : the slot where that net change tells ``g`` best (its spread over ``g`` is
+        largest): the end of the window for a one-way rig, the turn of a round trip, after
+        which the net change falls back. The start uses the events before it.
     """
 
     window_us: int
@@ -159,6 +162,7 @@ class MlModel:
     inv_h: np.ndarray
     net_g: np.ndarray
     net_v: np.ndarray
+    split_us: int
     description: str = ""
 
     @property
@@ -170,6 +174,19 @@ def _noise_rate_hz(sensor: SensorParams) -> float:
     """Background events per pixel per second: leak plus shot noise at its mid rate."""
     shot = sensor.shot_noise_rate_hz * 0.5 * (1.0 + sensor.shot_noise_bright_factor)
     return float(sensor.leak_rate_hz + shot)
+
+
+def _split(net: np.ndarray) -> int:
+    """Index (along axis 1 of ``net``, the net change of ``V`` per ``g`` row and time) of
+    the last time whose spread over ``g`` is within 0.1 % of the largest; -1 when that is
+    the last time given."""
+    spread = net.max(axis=0) - net.min(axis=0)
+    i = int(np.flatnonzero(spread >= 0.999 * spread.max())[-1])
+    return -1 if i == spread.size - 1 else i
+
+
+_SPLIT_TIMES = 2048
+"""Times (at most) at which :func:`ml_model` compares the net change's spread."""
 
 
 def _rising(v: np.ndarray) -> np.ndarray:
@@ -232,10 +249,16 @@ def ml_model(rig: Rig, sensor: SensorParams, *, window_us: float | None = None,
     if sensor.cutoff_hz <= 0:
         ng = np.linspace(g_lo, g_hi, 512)
         e = np.exp(ng)
-        nv = np.log(exact[0, -1] * e + exact[1, -1]) - np.log(v0[0] * e + v0[1])
+        slots = np.unique(np.append(np.arange(0, w_us, max(1, w_us // _SPLIT_TIMES)),
+                                    w_us - 1))
+        ec = e[::8, None]
+        i = _split(np.log(exact[0, slots] * ec + exact[1, slots]) - np.log(v0[0] * ec + v0[1]))
+        m_s = int(slots[i])
+        nv = np.log(exact[0, m_s] * e + exact[1, m_s]) - np.log(v0[0] * e + v0[1])
         return MlModel(mode=0, rows=np.zeros((2, 2, 2), np.float32), g0=g_lo, dlog=1.0,
                        locate=np.zeros((4, 1)), inv_h=np.zeros(1), net_g=ng,
-                       net_v=_rising(nv), description="exact log irradiance",
+                       net_v=_rising(nv), split_us=w_us if i < 0 else m_s + 1,
+                       description="exact log irradiance",
                        **common)  # type: ignore[arg-type]
     if not (dlog > 0 and math.isfinite(dlog)):
         raise ValueError(f"ml: dlog must be positive, got {dlog}")
@@ -272,9 +295,17 @@ def ml_model(rig: Rig, sensor: SensorParams, *, window_us: float | None = None,
     tab[-1, :, 1] = 0.0
     k_end = int(kc[-1])
     nv = (rows[:, k_end] + fc[-1] * (rows[:, k_end + 1] - rows[:, k_end])) - rows[:, 0]
+    ks = np.unique(np.append(np.arange(0, k_end + 1, max(1, (k_end + 1) // _SPLIT_TIMES)),
+                             k_end))
+    i = _split(rows[::8, ks] - rows[::8, :1])
+    m_split = w_us
+    if i >= 0:
+        nv = rows[:, ks[i]] - rows[:, 0]
+        m_split = max(1, min(int(np.searchsorted(tc, s[ks[i]], side="right")), w_us))
     return MlModel(mode=1, rows=tab, g0=g_lo, dlog=float(dlog),
                    locate=np.stack([kc, fc, ke, fe]), inv_h=1.0 / np.diff(s),
                    net_g=g_lo + dlog * np.arange(n_rows), net_v=_rising(nv),
+                   split_us=m_split,
                    description=f"photoreceptor low-pass tabulated ({n_rows} radiances x "
                    f"{s.size} times)", **common)  # type: ignore[arg-type]
 
@@ -327,8 +358,9 @@ def _eval(mode, j, w, e, m, end, exact, v0a, v0b, rows, dlog, locate, inv_h):
 
 @nb.njit(cache=True)
 def _moment(mode, g, t, p, lo, hi, dead, con, coff, u, exact, v0a, v0b, rows, g0, dlog,
-            locate, inv_h, wmax, skip, skip2):
-    """``sum_i r_i(g)`` at fixed thresholds and ``u``: rises with ``g`` during a ramp. With a
+            locate, inv_h, wmax, skip, skip2, split):
+    """``sum_i r_i(g)`` over the events before slot ``split``, at fixed thresholds and
+    ``u``: rises with ``g`` while the net change does (:attr:`MlModel.split_us`). With a
     dead time the first event is left out (its reference, ``u``, is unknown), unless it
     is the only one. Event ``skip`` is a background event (see :func:`_normal`)."""
     acc = 0.0
@@ -339,6 +371,8 @@ def _moment(mode, g, t, p, lo, hi, dead, con, coff, u, exact, v0a, v0b, rows, g0
     prev = -1
     for i in range(lo, hi):
         m = t[i]
+        if m >= split:
+            break
         if m >= wmax:
             m = wmax - 1
         vc, _, _ = _eval(mode, jg, wg, eg, m, False, exact, v0a, v0b, rows, dlog, locate,
@@ -562,36 +596,48 @@ def _initial(net, net_g, net_v):
 
 @nb.njit(cache=True)
 def _start(lo, hi, t, p, mode, dead, exact, v0a, v0b, rows, g0, dlog, locate, inv_h, wmax,
-           g_lo, g_hi, net_g, net_v, c1, c2, mu_u, skip, skip2):
+           g_lo, g_hi, net_g, net_v, c1, c2, mu_u, skip, skip2, split):
     """The fit's starting ``g``: where the model's net level change matches the events';
     then a bracket around it, widened until the moment sum changes sign, and false
     position (Illinois) to 0.02."""
     net = 0.0
+    n_before = 0
     for i in range(lo, hi):
+        if t[i] >= split:
+            break
+        n_before += 1
         if i != skip and i != skip2:
             net += c1 if p[i] > 0 else -c2
+    if n_before < 2:
+        # (almost) nothing before the split: the whole window, whose net change is the
+        # model's at the split only approximately
+        split = wmax
+        net = 0.0
+        for i in range(lo, hi):
+            if i != skip and i != skip2:
+                net += c1 if p[i] > 0 else -c2
     g = _initial(net, net_g, net_v)
     width = 0.25
     a = max(g - width, g_lo)
     bb = min(g + width, g_hi)
     fa = _moment(mode, a, t, p, lo, hi, dead, c1, c2, mu_u, exact, v0a, v0b, rows, g0, dlog,
-                 locate, inv_h, wmax, skip, skip2)
+                 locate, inv_h, wmax, skip, skip2, split)
     fb = _moment(mode, bb, t, p, lo, hi, dead, c1, c2, mu_u, exact, v0a, v0b, rows, g0, dlog,
-                 locate, inv_h, wmax, skip, skip2)
+                 locate, inv_h, wmax, skip, skip2, split)
     while fa > 0.0 and a > g_lo:
         bb = a
         fb = fa
         width *= 2.0
         a = max(a - width, g_lo)
         fa = _moment(mode, a, t, p, lo, hi, dead, c1, c2, mu_u, exact, v0a, v0b, rows, g0,
-                     dlog, locate, inv_h, wmax, skip, skip2)
+                     dlog, locate, inv_h, wmax, skip, skip2, split)
     while fb < 0.0 and bb < g_hi:
         a = bb
         fa = fb
         width *= 2.0
         bb = min(bb + width, g_hi)
         fb = _moment(mode, bb, t, p, lo, hi, dead, c1, c2, mu_u, exact, v0a, v0b, rows, g0,
-                     dlog, locate, inv_h, wmax, skip, skip2)
+                     dlog, locate, inv_h, wmax, skip, skip2, split)
     if fa >= 0.0:
         return a
     if fb <= 0.0:
@@ -602,7 +648,7 @@ def _start(lo, hi, t, p, mode, dead, exact, v0a, v0b, rows, g0, dlog, locate, in
         if bb - a < 0.02:
             break
         fg = _moment(mode, g, t, p, lo, hi, dead, c1, c2, mu_u, exact, v0a, v0b, rows, g0,
-                     dlog, locate, inv_h, wmax, skip, skip2)
+                     dlog, locate, inv_h, wmax, skip, skip2, split)
         if fg > 0.0:
             bb = g
             fb = fg
@@ -804,7 +850,7 @@ def _profile_scan(a0, step, n_g, mode, con, coff, t, p, lo, hi, dead, sr2, tq2, 
 @nb.njit(cache=True)
 def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
                dlog, locate, inv_h, wmax, g_lo, g_hi, net_g, net_v, c1, c2, s1, s2, gp, sgp,
-               fixed, h, bvec, x, lmat, wy, wz, out, u_sd, stat, res, scan):
+               fixed, h, bvec, x, lmat, wy, wz, out, u_sd, stat, res, scan, split):
     """One pixel (module docstring). Writes ``(g, sd, c_on, c_off, flag)`` into ``out``.
     ``u_sd > 0``: the pixel starts settled at its reference (``u ~ N(0, u_sd^2)``).
     ``stat`` (4), ``res`` (6) and ``scan`` (:func:`_profile_scan`) are work space.
@@ -852,7 +898,8 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
             g = gp
         else:
             g = _start(lo, hi, t, p, mode, dead, exact, v0a, v0b, rows, g0, dlog, locate,
-                       inv_h, wmax, g_lo, g_hi, net_g, net_v, c1, c2, mu_u, skip, skip2)
+                       inv_h, wmax, g_lo, g_hi, net_g, net_v, c1, c2, mu_u, skip, skip2,
+                       split)
         _gauss_newton(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
                       g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp,
                       sgp, np.int64(_MAX_ITER), skip, skip2, h, bvec, x, lmat, wy, wz, stat, res)
@@ -923,7 +970,7 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
 def _estimate_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
                      dlog, locate, inv_h, wmax, g_lo, g_hi, net_g, net_v, min_events, con0,
                      coff0, scon, scoff, g_prior, sg_prior, fixed, out_g, out_sd, out_con,
-                     out_coff, out_flag, u_sd):
+                     out_coff, out_flag, u_sd, split):
     """Fit every pixel (module docstring), in blocks of ``_BLOCK`` per thread. ``fixed``:
     evaluate the information at ``g_prior`` with no fit (the bound); ``sg_prior > 0``: a
     Gaussian prior on ``g``."""
@@ -954,7 +1001,7 @@ def _estimate_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
                        g0, dlog, locate, inv_h, wmax, g_lo, g_hi, net_g, net_v, con0[px],
                        coff0[px], max(scon[px], 1e-6), max(scoff[px], 1e-6), g_prior[px],
                        sg_prior[px], fixed, h, bvec, x, lmat, wy, wz, res, u_sd, stat, work,
-                       scan)
+                       scan, split)
             out_g[px] = res[0]
             out_sd[px] = res[1]
             out_con[px] = res[2]
@@ -1083,7 +1130,8 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
                      model.net_v, np.int64(1 if fixed else min_events),
                      np.ascontiguousarray(con), np.ascontiguousarray(coff),
                      np.ascontiguousarray(scon), np.ascontiguousarray(scoff), gp, sp, fixed,
-                     out_g, out_sd, out_con, out_coff, out_flag, float(start_sigma))
+                     out_g, out_sd, out_con, out_coff, out_flag, float(start_sigma),
+                     np.int64(model.split_us))
     return out_g, out_sd, out_con, out_coff, out_flag, counts
 
 
