@@ -30,6 +30,9 @@ def design(
     contrast_ratio: float = typer.Option(1000.0, help="Panels' open/closed ratio."),
     min_snr_db: float = typer.Option(DEFAULT_MIN_SNR_DB, help="Per-pixel SNR a level needs "
                                      "to count in the range."),
+    family: list[str] = typer.Option(["sequential", "round_trip"], "--family",
+                                     help="Rig families to search (repeatable): sequential "
+                                     "| round_trip."),
     out: Path | None = typer.Option(None, "--out", "-o", help="Rig file to write (.toml)."),
     compare: bool = typer.Option(False, "--compare", help="Also predict the paper's rig "
                                  "(linear ramps, t2_stop 0.5, L_const 10 lux) and a "
@@ -52,6 +55,7 @@ def design(
         with progress_bar() as update:
             res = run(sensor, l_min=l_min, l_max=l_max, frame_rate_hz=frame_rate_hz,
                       contrast_ratio=contrast_ratio, min_snr_db=min_snr_db,
+                      families=tuple(family),
                       progress=lambda d, t: update("candidates", d, t))
     except ValueError as exc:
         fail(str(exc))
