@@ -143,7 +143,7 @@ def test_cmap_keeps_nominal_thresholds_where_the_flat_level_measures_none() -> N
     per_cycle[1, 2] = 1e-3
     per_cycle[2, 0] = -1.0
     per_cycle[2, 3] = 0.0
-    m, n_nominal = cmap_from_levels(4 * per_cycle, 4, name="test")
+    m, n_nominal = cmap_from_levels(4 * per_cycle, 4)
     assert m[0, 1] == pytest.approx(4.0)
     assert m[1, 2] == 1.0 and m[2, 0] == 1.0 and m[2, 3] == 1.0
     assert n_nominal == 3

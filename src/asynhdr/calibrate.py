@@ -53,6 +53,7 @@ __all__ = [
     "cmap_from_levels",
     "cmap_key",
     "estimate_cmap",
+    "warn_nominal",
 ]
 
 logger = logging.getLogger(__name__)
@@ -65,12 +66,12 @@ a pixel that is hot, dead or whose flat-field level is noise."""
 
 
 
-def cmap_from_levels(total: np.ndarray, n_cycles: int, *, min_abs_level: float = 1e-6,
-                     name: str = "") -> tuple[np.ndarray, int]:
+def cmap_from_levels(total: np.ndarray, n_cycles: int, *,
+                     min_abs_level: float = 1e-6) -> tuple[np.ndarray, int]:
     """One weighting's c-map, ``median(l) / l_p``, from the per-pixel sums of the level
     ``l`` over ``n_cycles`` flat-field cycles. Pixels whose level measures no threshold
-    (module docstring) get 1; returns the map (float32) and their number, which a
-    warning names with ``name``."""
+    (module docstring) get 1; returns the map (float32) and their number
+    (:func:`warn_nominal` reports them)."""
     mean = total / n_cycles
     valid = np.abs(mean) > min_abs_level
     cm = np.ones(mean.shape, np.float64)
@@ -80,12 +81,15 @@ def cmap_from_levels(total: np.ndarray, n_cycles: int, *, min_abs_level: float =
             cm[valid] = ref / mean[valid]
     bad = ~valid | (cm <= 0) | (cm > CMAP_MAX_GAIN) | (cm < 1.0 / CMAP_MAX_GAIN)
     cm[bad] = 1.0
-    n_bad = int(bad.sum())
-    if n_bad:
-        logger.warning("c-map %s: %d of %d pixels keep the nominal thresholds (no events, "
-                       "a level of the wrong sign, or a correction beyond %gx)", name, n_bad,
-                       bad.size, CMAP_MAX_GAIN)
-    return cm.astype(np.float32), n_bad
+    return cm.astype(np.float32), int(bad.sum())
+
+
+def warn_nominal(kept: dict[str, int], n_pixels: int) -> None:
+    """One warning for the pixels each map left at the nominal thresholds (if any)."""
+    if any(kept.values()):
+        logger.warning("c-map: pixels of %d that keep the nominal thresholds (no events, a "
+                       "level of the wrong sign, or a correction beyond %gx): %s", n_pixels,
+                       CMAP_MAX_GAIN, ", ".join(f"{k} {v}" for k, v in kept.items()))
 
 
 def cmap_key(method: str, *, k: float = DEFAULT_K) -> str:
@@ -190,8 +194,8 @@ def estimate_cmap(
     kept: dict[str, int] = {}
     for m in methods:
         key = cmap_key(m, k=k)
-        maps[key], kept[key] = cmap_from_levels(sums[m], n_cycles, min_abs_level=min_abs_level,
-                                                name=key)
+        maps[key], kept[key] = cmap_from_levels(sums[m], n_cycles, min_abs_level=min_abs_level)
+    warn_nominal(kept, shape[0] * shape[1])
     meta: dict[str, Any] = {
         "n_captures": n_caps,
         "n_cycles": n_cycles,

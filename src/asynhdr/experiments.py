@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from asynhdr.calibrate import CMap, cmap_from_levels, cmap_key
+from asynhdr.calibrate import CMap, cmap_from_levels, cmap_key, warn_nominal
 from asynhdr.events import Recording
 from asynhdr.framecam import (
     FrameCamera,
@@ -207,7 +207,8 @@ def _cmaps_from_flats(captures: Iterator[Recording], ks: Sequence[float]) -> CMa
     kept: dict[str, int] = {}
     for (m, k), s in sums.items():
         key = cmap_key(m, k=k)
-        maps[key], kept[key] = cmap_from_levels(s, n_cycles, name=key)
+        maps[key], kept[key] = cmap_from_levels(s, n_cycles)
+    warn_nominal(kept, next(iter(sums.values())).size)
     return CMap(maps=maps, metadata={"n_captures": n_caps, "n_cycles": n_cycles,
                                      "methods": list(WEIGHTINGS), "k": DEFAULT_K,
                                      "k_sweep": [float(k) for k in ks],
