@@ -22,7 +22,7 @@ from asynhdr import ml
 from asynhdr.calib import thresholds_from_flats
 from asynhdr.calibrate import estimate_cmap
 from asynhdr.design import default_rig
-from asynhdr.metrics import central_rois
+from asynhdr.metrics import central_rois, linear_run
 from asynhdr.reconstruct import CycleWindows, reconstruct, weighted_sums
 from asynhdr.scene import flat_field, step_chart
 from asynhdr.sensor.params import get_preset
@@ -36,8 +36,9 @@ MIN_SNR_DB = 20.0
 
 
 def chart_figures(img: np.ndarray, scene: Any) -> dict[str, Any]:
-    """Per level (sorted by radiance): bias after one global scale, per-pixel SNR over the
-    central 16x16 region; the longest run with |bias| <= 5 % and SNR >= 20 dB."""
+    """Per level (sorted by radiance): per-pixel SNR over the central 16x16 region, bias
+    after one global scale; the longest run with |bias| <= 5 % and SNR >= 20 dB
+    (:func:`asynhdr.metrics.linear_run`)."""
     rois = central_rois(scene.rois)
     truth = np.asarray(scene.truth, dtype=np.float64)
     order = np.argsort(truth)
@@ -55,29 +56,12 @@ def chart_figures(img: np.ndarray, scene: Any) -> dict[str, Any]:
         means.append(m)
         snrs.append(20 * math.log10(m / s) if s > 0 else np.inf)
     lv = truth[order]
-    mu = np.array(means)
-    good = np.isfinite(mu)
-    scale = float(np.exp(np.median(np.log(lv[good] / mu[good])))) if good.any() else np.nan
-    bias = mu * scale / lv - 1.0
-    ok = good & (np.abs(bias) <= MAX_BIAS) & (np.array(snrs) >= MIN_SNR_DB)
-    best = (0.0, -1, -1)
-    i = 0
-    while i < ok.size:
-        if ok[i]:
-            j = i
-            while j + 1 < ok.size and ok[j + 1]:
-                j += 1
-            span = 20 * math.log10(lv[j] / lv[i])
-            if span > best[0] or best[1] < 0:
-                best = (span, i, j)
-            i = j + 1
-        else:
-            i += 1
-    span, i, j = best
-    run_snr = float(np.mean(np.array(snrs)[i:j + 1])) if i >= 0 else float("nan")
-    return {"run_db": span, "run_lux": [float(lv[i]), float(lv[j])] if i >= 0 else None,
-            "run_levels": int(j - i + 1) if i >= 0 else 0, "run_mean_snr_db": run_snr,
-            "scale": scale, "levels_lux": lv.tolist(), "bias": bias.tolist(),
+    run = linear_run(lv, np.array(means), np.array(snrs), max_bias=MAX_BIAS,
+                     min_snr_db=MIN_SNR_DB)
+    i, j = run.lo, run.hi
+    return {"run_db": run.span_db, "run_lux": [float(lv[i]), float(lv[j])] if i >= 0 else None,
+            "run_levels": run.n_levels, "run_mean_snr_db": run.mean_snr_db,
+            "scale": run.scale, "levels_lux": lv.tolist(), "bias": run.bias.tolist(),
             "snr_db": [float(x) for x in snrs], "finite_fraction": fin}
 
 

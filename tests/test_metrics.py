@@ -219,3 +219,28 @@ def test_distinct_grey_levels() -> None:
     img = np.repeat(np.array([[1.0, 10.0, 100.0]]), 4, axis=0)
     assert distinct_grey_levels(img) == 3
     assert distinct_grey_levels(np.outer(np.ones(10), np.logspace(0, 3, 1000))) == 256
+
+
+def test_linear_run_takes_the_scale_of_the_levels_it_measures() -> None:
+    from asynhdr.metrics import linear_run
+
+    lv = 10.0 ** np.arange(8)
+    # a unit of 2 from level 4 up; the four darkest read 50, 20, 10 and 5x too high
+    mu = 2.0 * lv
+    mu[:4] *= np.array([50.0, 20.0, 10.0, 5.0])
+    mu[5] *= 1.04  # within 5 %
+    snr = np.full(8, 30.0)
+    snr[7] = 19.0  # the brightest is too noisy
+    run = linear_run(lv, mu, snr)
+    assert (run.lo, run.hi) == (4, 6)
+    assert run.span_db == pytest.approx(40.0)
+    assert run.mean_snr_db == pytest.approx(30.0)
+    assert run.scale == pytest.approx(0.5, rel=0.05)
+    # one scale from all eight levels (their median ratio, 0.29) fits none of them
+    s_all = float(np.exp(np.median(np.log(lv / mu))))
+    assert np.all(np.abs(mu * s_all / lv - 1.0) > 0.05)
+    # nothing loud enough: no run
+    none = linear_run(lv, mu, np.full(8, 10.0))
+    assert none.n_levels == 0 and none.span_db == 0.0
+    with pytest.raises(ValueError, match="ascending"):
+        linear_run(lv[::-1], mu, snr)

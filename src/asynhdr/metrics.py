@@ -43,6 +43,7 @@ __all__ = [
     "SNR_REGION_SHAPE",
     "DynamicRange",
     "ImageComparison",
+    "LinearRun",
     "PatchStats",
     "ResponseFit",
     "SnrSummary",
@@ -54,6 +55,7 @@ __all__ = [
     "fit_response",
     "fit_scale",
     "input_referred_snr",
+    "linear_run",
     "log_rmse",
     "mean_snr_db",
     "patch_event_fraction",
@@ -404,6 +406,70 @@ def radiometric_error(stats: PatchStats, truth: npt.ArrayLike, *,
     scale = float(np.exp(np.median(np.log(t[ok] / mu[ok])))) if ok.any() else 1.0
     err = np.sqrt((mu * scale - t) ** 2 + (stats.std * scale) ** 2) / t
     return err, scale
+
+
+@dataclass(frozen=True)
+class LinearRun:
+    """The longest run of levels an image measures as radiance (:func:`linear_run`).
+
+    ``span_db`` is ``20 log10(L_hi / L_lo)`` (0 for a single level or none), ``lo``,
+    ``hi`` the indices of its ends (-1 when there is none), ``mean_snr_db`` the mean
+    per-pixel SNR over it, ``scale`` the global scale and ``bias`` every level's bias
+    under it."""
+
+    span_db: float
+    lo: int
+    hi: int
+    mean_snr_db: float
+    scale: float
+    bias: np.ndarray
+
+    @property
+    def n_levels(self) -> int:
+        return self.hi - self.lo + 1 if self.lo >= 0 else 0
+
+
+def linear_run(radiance: npt.ArrayLike, mean: npt.ArrayLike, snr_db: npt.ArrayLike, *,
+               max_bias: float = 0.05, min_snr_db: float = 20.0) -> LinearRun:
+    """The longest run of consecutive levels (``radiance`` ascending) whose mean, after ONE
+    global scale, is within ``max_bias`` of the radiance and whose per-pixel SNR is at
+    least ``min_snr_db``: the range an image measures radiance over, up to its unit.
+
+    The scale is the one that gives the longest run (ties: the higher mean SNR), tried at
+    every level's own ratio ``L / mean``: a scale fixed from all levels at once would let
+    the levels outside the sensor's range, biased by orders of magnitude, set the unit of
+    those inside it."""
+    lv = np.asarray(radiance, dtype=np.float64)
+    mu = np.asarray(mean, dtype=np.float64)
+    snr = np.asarray(snr_db, dtype=np.float64)
+    if not (lv.shape == mu.shape == snr.shape and lv.ndim == 1):
+        raise ValueError("linear_run: radiance, mean and snr_db must be 1-D of one length")
+    if np.any(np.diff(lv) <= 0):
+        raise ValueError("linear_run: radiance must be strictly ascending")
+    good = np.isfinite(mu) & (mu > 0)
+    loud = good & (snr >= min_snr_db)
+    cands = np.unique(lv[loud] / mu[loud]) if loud.any() else np.array([])
+    best = LinearRun(0.0, -1, -1, float("nan"), float("nan"), np.full(lv.size, np.nan))
+    key_best = (-1.0, -np.inf)
+    for scale in cands:
+        with np.errstate(invalid="ignore"):
+            bias = mu * scale / lv - 1.0
+            ok = loud & (np.abs(bias) <= max_bias)
+        i = 0
+        while i < ok.size:
+            if not ok[i]:
+                i += 1
+                continue
+            j = i
+            while j + 1 < ok.size and ok[j + 1]:
+                j += 1
+            span = 20.0 * math.log10(lv[j] / lv[i])
+            m_snr = float(np.mean(snr[i:j + 1]))
+            if (span, m_snr) > key_best:
+                key_best = (span, m_snr)
+                best = LinearRun(span, i, j, m_snr, float(scale), bias)
+            i = j + 1
+    return best
 
 
 def distinct_grey_levels(image: npt.ArrayLike, *, mask: npt.ArrayLike | None = None) -> int:
