@@ -111,7 +111,8 @@ _CHI2_RESCUE = 2.0
 _SD_RESCUE = 0.2
 _VAR_INFORMED = 1.0
 _OUTLIER_Z2 = 16.0
-_OUTLIER_PENALTY = 12.0
+_DENSITY_FLOOR = 1e-300
+_THRESHOLD_Z = 4.0
 _SCAN_STEP = 0.2
 
 
@@ -438,16 +439,18 @@ def _solve4(h, b, x, lmat, y, z):
 
 @nb.njit(cache=True)
 def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
-            rows, g0, dlog, locate, inv_h, wmax, h, b, first_var, skip, skip2, stat):
+            rows, g0, dlog, locate, inv_h, wmax, h, b, first_var, skip, skip2, stat, lam_nll):
     """Accumulate the Gauss-Newton normal equations of the events ``lo..hi`` at
     ``theta = (g, u, c_on, c_off)`` into ``h`` and ``b`` (``b = -sum w r J``); returns
     ``chi2 = sum w r^2``. ``first_var`` is added to the variance of the equations that hold
     ``u`` (a scan at fixed ``u`` gives them the prior's spread). Event ``skip`` is taken
     for a background event: no equation of its own, but it resets the pixel (the walk of
     a pixel without dead time restarts at its level). ``stat`` receives the largest
-    ``(r / s)^2``, the index of its event, the unweighted chi-square and the number of
-    events the outlier weights take for signal."""
+    ``(r / s)^2``, the index of its event, the unweighted chi-square, the number of
+    events the outlier weights take for signal and, when ``lam_nll >= 0``, the events'
+    negative log-likelihood ``-2 sum ln(f_i + lam_nll)`` (:func:`_fit_nll`)."""
     chi2 = 0.0
+    nll = 0.0
     jg, wg, eg = _at_g(mode, g, g0, dlog, rows.shape[1])
     vs, dgs, _ = _eval(mode, jg, wg, eg, -1, False, exact, v0a, v0b, rows, dlog, locate,
                        inv_h)
@@ -523,12 +526,17 @@ def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exac
         if z2 > z_max:
             z_max = z2
             i_max = i
-        if lam > 0.0:
+        if lam > 0.0 or lam_nll >= 0.0:
             sd = math.sqrt(var)
             f = math.exp(-0.5 * z2) * abs(dtc) / (sd * 2.5066282746310002)
-            gam = f / (f + lam)
-            w *= gam
-            n_signal += gam
+            if lam_nll >= 0.0:
+                nll -= 2.0 * math.log(max(f + lam_nll, _DENSITY_FLOOR))
+            if lam > 0.0:
+                gam = f / (f + lam)
+                w *= gam
+                n_signal += gam
+            else:
+                n_signal += 1.0
         else:
             n_signal += 1.0
         wr = w * r
@@ -569,6 +577,7 @@ def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exac
     stat[1] = i_max
     stat[2] = z_sum
     stat[3] = n_signal
+    stat[4] = nll
     return chi2
 
 
@@ -682,7 +691,7 @@ def _gauss_newton(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v
         bvec[:] = 0.0
         chi2 = _normal(mode, g, uu, cc1, cc2, t, p, lo, hi, dead, sr2, tq2, eq2,
                        lam if robust else 0.0, exact, v0a, v0b, rows, g0, dlog, locate, inv_h,
-                       wmax, h, bvec, 0.0, skip, skip2, stat)
+                       wmax, h, bvec, 0.0, skip, skip2, stat, -1.0)
         h[1, 1] += 1.0 / (su * su)
         bvec[1] += (mu_u - uu) / (su * su)
         h[2, 2] += 1.0 / (s1 * s1)
@@ -721,10 +730,26 @@ def _gauss_newton(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v
     res[5] = chi2
 
 
-@nb.njit(cache=True, inline="always")
-def _objective(chi2, res, c1, c2, s1, s2, mu_u, su):
-    """The unweighted chi-square of a fit ``res`` with its priors' terms."""
-    return chi2 + ((res[3] - c1) / s1) ** 2 + ((res[4] - c2) / s2) ** 2 \
+@nb.njit(cache=True)
+def _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
+             dlog, locate, inv_h, wmax, c1, c2, s1, s2, su, mu_u, skip, skip2, h, bvec, st):
+    """What a fit ``res`` (:func:`_gauss_newton`'s) is judged by against another: twice the
+    negative log-likelihood of the event *times*, ``-2 sum ln(f_i + lambda)`` with
+    ``f_i = phi(r_i / s_i) |V'(t_c,i)| / s_i`` the signal's density at the event's time and
+    ``lambda`` the background's (an event the signal cannot explain costs ``-2 ln
+    lambda``), ``-2 ln lambda`` per event taken for background (``skip``), and the priors'
+    terms. The residuals alone (the chi-square) would favour a slow signal with thresholds
+    near zero, whose level passes close to every event's but at times it makes unlikely.
+    ``h``, ``bvec``, ``st`` (5) are work space."""
+    h[:, :] = 0.0
+    bvec[:] = 0.0
+    lam_nll = max(lam, 0.0)
+    _normal(mode, res[0], res[2], res[3], res[4], t, p, lo, hi, dead, sr2, tq2, eq2, 0.0,
+            exact, v0a, v0b, rows, g0, dlog, locate, inv_h, wmax, h, bvec, 0.0, skip, skip2,
+            st, lam_nll)
+    n_bg = (1 if skip >= 0 else 0) + (1 if skip2 >= 0 else 0)
+    bg = -2.0 * math.log(max(lam_nll, _DENSITY_FLOOR)) * n_bg
+    return st[4] + bg + ((res[3] - c1) / s1) ** 2 + ((res[4] - c2) / s2) ** 2 \
         + ((res[2] - mu_u) / su) ** 2
 
 
@@ -848,18 +873,56 @@ def _profile_scan(a0, step, n_g, mode, con, coff, t, p, lo, hi, dead, sr2, tq2, 
 
 
 @nb.njit(cache=True)
+def _held_thresholds(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
+                     g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp,
+                     sgp, skip, skip2, h, bvec, x, lmat, wy, wz, stat, res, st_o):
+    """Guard a fit ``res`` (from start ``g``) whose thresholds left their prior by more than
+    :data:`_THRESHOLD_Z` of its spread: Gauss-Newton minimises the residuals alone, and a
+    slow signal with thresholds near zero passes close to every event's level (at times
+    it makes unlikely). The fit again with the thresholds held near their prior (a tenth
+    of its spread) replaces it when its likelihood (:func:`_fit_nll`) is higher; its
+    variance of ``ln L`` is then evaluated with the real priors."""
+    if abs(res[3] - c1) <= _THRESHOLD_Z * s1 and abs(res[4] - c2) <= _THRESHOLD_Z * s2:
+        return
+    nll0 = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
+                    g0, dlog, locate, inv_h, wmax, c1, c2, s1, s2, su, mu_u, skip, skip2, h,
+                    bvec, st_o)
+    res2 = np.empty(6)
+    stat2 = np.empty(5)
+    _gauss_newton(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
+                  dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, 0.1 * s1, 0.1 * s2, su, mu_u,
+                  gp, sgp, np.int64(_MAX_ITER), skip, skip2, h, bvec, x, lmat, wy, wz, stat2,
+                  res2)
+    nll1 = _fit_nll(res2, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
+                    rows, g0, dlog, locate, inv_h, wmax, c1, c2, s1, s2, su, mu_u, skip,
+                    skip2, h, bvec, st_o)
+    if not nll1 < nll0:
+        return
+    for k in range(6):
+        res[k] = res2[k]
+    for k in range(5):
+        stat[k] = stat2[k]
+    # the information at that fit with the real priors (no step)
+    _gauss_newton(res2[0], lo, hi, t, p, mode, dead, sr2, tq2, eq2, 0.0, exact, v0a, v0b,
+                  rows, g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u,
+                  gp, sgp, np.int64(0), skip, skip2, h, bvec, x, lmat, wy, wz, stat2, res2)
+    res[1] = res2[1]
+
+
+@nb.njit(cache=True)
 def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
                dlog, locate, inv_h, wmax, g_lo, g_hi, net_g, net_v, c1, c2, s1, s2, gp, sgp,
-               fixed, h, bvec, x, lmat, wy, wz, out, u_sd, stat, res, scan, split):
+               fixed, h, bvec, x, lmat, wy, wz, out, u_sd, stat, res, scan, split, st_o):
     """One pixel (module docstring). Writes ``(g, sd, c_on, c_off, flag)`` into ``out``.
     ``u_sd > 0``: the pixel starts settled at its reference (``u ~ N(0, u_sd^2)``).
-    ``stat`` (4), ``res`` (6) and ``scan`` (:func:`_profile_scan`) are work space.
+    ``stat`` (5), ``st_o`` (5), ``res`` (6) and ``scan`` (:func:`_profile_scan`) are work
+    space.
 
     The fit: a start (:func:`_start`), Gauss-Newton; when the fit is poor or vague, a scan
     of the profile objective (:func:`_profile_scan`) over the range, kept when better;
     and, when background events are modelled, the same again with the worst event taken
-    for a background event, kept when its fit is better by more than the price of one
-    such event (:data:`_OUTLIER_PENALTY` in chi-square units)."""
+    for a background event, kept when its likelihood is higher (:func:`_fit_nll`: the
+    background event is priced at its own density)."""
     su = (c1 + c2) / math.sqrt(12.0)
     mu_u = 0.5 * (c2 - c1)
     if u_sd > 0.0:
@@ -903,8 +966,12 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
         _gauss_newton(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
                       g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp,
                       sgp, np.int64(_MAX_ITER), skip, skip2, h, bvec, x, lmat, wy, wz, stat, res)
+        _held_thresholds(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
+                         rows, g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, s1, s2, su,
+                         mu_u, gp, sgp, skip, skip2, h, bvec, x, lmat, wy, wz, stat, res, st_o)
         n_bg = (1 if skip >= 0 else 0) + (1 if skip2 >= 0 else 0)
         n_eq = n - n_bg
+        obj = np.inf
         if (res[5] > n_eq + _CHI2_RESCUE * math.sqrt(2.0 * n_eq) + 2.0
                 or not res[1] < _SD_RESCUE * _SD_RESCUE):
             # a poor fit (chi-square beyond its spread) or a vague one (a plateau where
@@ -912,9 +979,11 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
             # from the best of a coarse scan of the profile objective (the thresholds at
             # their best for each g), coarse to fine: steps of 2 x _SCAN_STEP over the
             # range, then _SCAN_STEP / 2 around the best; keep whichever fit is better
-            obj0 = _objective(stat[2], res, c1, c2, s1, s2, mu_u, su)
+            obj = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
+                           rows, g0, dlog, locate, inv_h, wmax, c1, c2, s1, s2, su, mu_u, skip,
+                           skip2, h, bvec, st_o)
             r0, r1, r2, r3, r4, r5 = res[0], res[1], res[2], res[3], res[4], res[5]
-            st2 = stat[2]
+            z0, z1, z2, z3 = stat[0], stat[1], stat[2], stat[3]
             gbest = res[0]
             for level in range(2):
                 step = _SCAN_STEP * (2.0 if level == 0 else 0.5)
@@ -928,19 +997,18 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
                           v0b, rows, g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, s1,
                           s2, su, mu_u, gp, sgp, np.int64(_MAX_ITER), skip, skip2, h, bvec, x,
                           lmat, wy, wz, stat, res)
-            if not _preferred(_objective(stat[2], res, c1, c2, s1, s2, mu_u, su), res[1],
-                              obj0, r1):
+            _held_thresholds(gbest, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
+                             v0b, rows, g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, s1,
+                             s2, su, mu_u, gp, sgp, skip, skip2, h, bvec, x, lmat, wy, wz, stat,
+                             res, st_o)
+            obj1 = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
+                            v0b, rows, g0, dlog, locate, inv_h, wmax, c1, c2, s1, s2, su, mu_u,
+                            skip, skip2, h, bvec, st_o)
+            if _preferred(obj1, res[1], obj, r1):
+                obj = obj1
+            else:
                 res[0], res[1], res[2], res[3], res[4], res[5] = r0, r1, r2, r3, r4, r5
-                stat[2] = st2
-        # the unweighted objective of this hypothesis (stat from the last pass)
-        obj = _objective(stat[2], res, c1, c2, s1, s2, mu_u, su) + _OUTLIER_PENALTY * n_bg
-        improved = best_obj == np.inf or _preferred(obj, res[1], best_obj, best_v)
-        if improved:
-            best_obj = obj
-            best_g = res[0]
-            best_v = res[1]
-            best_c1 = res[3]
-            best_c2 = res[4]
+                stat[0], stat[1], stat[2], stat[3] = z0, z1, z2, z3
         if attempt == 0 and lam > 0.0 and n >= 3:
             if stat[3] < 0.5 * n:
                 # the outlier weights took most events for background: a collapsed fit;
@@ -950,8 +1018,26 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
             elif stat[0] >= _OUTLIER_Z2 and stat[1] >= 0:
                 skip = np.int64(stat[1])
                 n_try = 2
-        elif (attempt == n_try - 1 and not collapsed and skip >= 0 and skip2 < 0 and improved
-              and stat[0] >= _OUTLIER_Z2 and stat[1] >= 0 and n >= 5):
+        if n_try > 1 and obj == np.inf:
+            # hypotheses to compare: this one's likelihood (:func:`_fit_nll`); attempt 0
+            # took no event for background (skip is already the next attempt's)
+            sk = skip
+            sk2 = skip2
+            if attempt == 0:
+                sk = np.int64(-1)
+                sk2 = np.int64(-1)
+            obj = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
+                           rows, g0, dlog, locate, inv_h, wmax, c1, c2, s1, s2, su, mu_u, sk,
+                           sk2, h, bvec, st_o)
+        improved = best_obj == np.inf or _preferred(obj, res[1], best_obj, best_v)
+        if improved:
+            best_obj = obj
+            best_g = res[0]
+            best_v = res[1]
+            best_c1 = res[3]
+            best_c2 = res[4]
+        if (attempt > 0 and attempt == n_try - 1 and not collapsed and skip >= 0 and skip2 < 0
+                and improved and stat[0] >= _OUTLIER_Z2 and stat[1] >= 0 and n >= 5):
             # a second background event in the same cycle
             skip2 = np.int64(stat[1])
             n_try += 1
@@ -984,7 +1070,8 @@ def _estimate_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
         wy = np.zeros(4)
         wz = np.zeros(4)
         res = np.zeros(5)
-        stat = np.zeros(4)
+        stat = np.zeros(5)
+        st_o = np.zeros(5)
         work = np.zeros(6)
         scan = np.zeros((int((g_hi - g_lo) / (2.0 * _SCAN_STEP)) + 2, 10))
         for px in range(blk * _BLOCK, min(npx, (blk + 1) * _BLOCK)):
@@ -1001,7 +1088,7 @@ def _estimate_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
                        g0, dlog, locate, inv_h, wmax, g_lo, g_hi, net_g, net_v, con0[px],
                        coff0[px], max(scon[px], 1e-6), max(scoff[px], 1e-6), g_prior[px],
                        sg_prior[px], fixed, h, bvec, x, lmat, wy, wz, res, u_sd, stat, work,
-                       scan, split)
+                       scan, split, st_o)
             out_g[px] = res[0]
             out_sd[px] = res[1]
             out_con[px] = res[2]
