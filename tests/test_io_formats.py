@@ -12,7 +12,7 @@ from typing import Any
 import h5py
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from asynhdr.events import EVENT_DTYPE, Recording, make_events, make_triggers, validate_events
@@ -834,6 +834,7 @@ def _damage(data: bytes, cut: float, flips: list[tuple[float, int]]) -> bytes:
 @_PROPERTY
 @given(cut=st.one_of(st.just(1.0), st.floats(0.0, 1.0)),
        flips=st.lists(st.tuples(st.floats(0.0, 1.0), st.integers(1, 255)), max_size=4))
+@example(cut=0.0625, flips=[(0.3046875, 1), (0.0625, 1)])  # a header left with no stream
 def test_aedat4_and_dat_readers_on_truncated_or_flipped_files(
         fuzz_dir: Path, cut: float, flips: list[tuple[float, int]]) -> None:
     """Damaged .aedat4 (LZ4) and .dat files: valid events or a ValueError naming the

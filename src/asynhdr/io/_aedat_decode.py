@@ -205,7 +205,8 @@ def _streams(name: str, header: bytes) -> dict[int, Stream]:
     header still gives what it can (a stream it does not describe is not read)."""
     nodes = list(_STREAM_NODE.finditer(header))
     out: dict[int, Stream] = {}
-    for m, nxt in zip(nodes, [*nodes[1:], None], strict=True):
+    for k, m in enumerate(nodes):
+        nxt = nodes[k + 1] if k + 1 < len(nodes) else None
         segment = header[m.end() : nxt.start() if nxt is not None else len(header)]
         try:
             attrs = {k.decode("utf-8"): html.unescape(v.decode("utf-8")).strip()
