@@ -156,6 +156,20 @@ def test_designed_defaults_and_prediction() -> None:
     assert db_p <= 90.0
 
 
+def test_design_families() -> None:
+    # every designed default names a family design() knows, and builds; an unknown family
+    # is refused before anything is simulated; a round trip needs room for both halves
+    from asynhdr.design import FAMILIES, design, round_trip_rig
+
+    for preset, p in DESIGNED.items():
+        assert p["family"] in FAMILIES, preset
+        assert default_rig(preset).period_us == 50_000
+    with pytest.raises(ValueError, match="unknown rig families"):
+        design("ideal", families=("zigzag",))
+    with pytest.raises(ValueError, match="2 b <= ramp_fraction"):
+        round_trip_rig(period_us=50_000, l_const=100.0, a=0.2, b=0.5)
+
+
 def test_thresholds_from_results_weights_by_events() -> None:
     # hand-computed: pixel 0 fired 3 ON in cycle 0 (c_on 0.20) and 1 ON in cycle 1
     # (c_on 0.24): (3 * 0.20 + 1 * 0.24) / 4 = 0.21; no OFF event: NaN
