@@ -91,6 +91,11 @@ def test_uncalibrated_dark_pixels_find_the_likelihoods_optimum() -> None:
     assert np.mean(np.isnan(err)) < 0.01
     assert np.mean(np.abs(err[np.isfinite(err)]) > 1.0) < 0.05
     assert abs(float(np.nanmedian(err))) < 0.05
+    # an estimate uncertain to a factor e is no estimate: NaN, flagged, its deviation kept
+    sd, fl = res.sigma_log[-1], res.flags[-1]
+    assert np.all(sd[np.isfinite(err)] < 1.0)
+    vague = fl == ml.FLAG_UNINFORMED
+    assert np.all(np.isnan(err[vague])) and np.all(sd[vague] >= 1.0)
 
 
 def test_uncalibrated_fit_keeps_its_thresholds_out_of_the_collapse() -> None:

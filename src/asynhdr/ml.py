@@ -48,7 +48,8 @@ photoreceptor's state at the cycle start is the periodic steady state (two cycle
 integrated); the readout's queueing delays (the arbiter) and hot pixels are not modelled;
 crossings that the jitter clamps to the end of a dead time are treated as unclamped.
 
-Pixels without events carry no information: NaN, flag :data:`FLAG_NO_EVENTS`. Pixels
+Pixels without events carry no information: NaN, flag :data:`FLAG_NO_EVENTS`; nor do
+pixels whose estimate is uncertain to a factor e or more (:data:`FLAG_UNINFORMED`). Pixels
 whose estimate leaves the model's radiance range are flagged :data:`FLAG_OUT_OF_RANGE`
 and set to NaN too (the bound is printed in the log, not the image).
 """
@@ -73,6 +74,7 @@ __all__ = [
     "DEFAULT_DLOG",
     "FLAG_NO_EVENTS",
     "FLAG_OUT_OF_RANGE",
+    "FLAG_UNINFORMED",
     "MlModel",
     "MlResult",
     "cached_model",
@@ -102,6 +104,9 @@ FLAG_NO_EVENTS = 1
 the first event's reference is unknown, so one event only bounds the radiance): NaN."""
 FLAG_OUT_OF_RANGE = 2
 """Flag: the estimate left the model's radiance range: NaN."""
+FLAG_UNINFORMED = 4
+"""Flag: the estimate's standard deviation of ``ln L`` is 1 or more (the events fix ``L``
+to no better than a factor e: a plateau of the likelihood): NaN, the deviation kept."""
 
 _MAX_ITER = 16
 _TOL_G = 1e-3
@@ -1045,6 +1050,8 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
     flag = 0.0
     if best_g <= g_lo + 1e-9 or best_g >= g_hi - 1e-9:
         flag = 2.0
+    elif not best_v < _VAR_INFORMED:
+        flag = 4.0
     out[0] = best_g
     out[1] = math.sqrt(best_v) if best_v == best_v and best_v >= 0.0 else np.nan
     out[2] = best_c1
@@ -1151,7 +1158,8 @@ class MlResult:
     ----------
     radiance : float32 ``L = exp(g_hat)`` in the unit of ``L_const``; NaN where flagged.
     sigma_log : float32 standard deviation of ``ln L`` (the bound at the estimate).
-    flags : uint8, 0 (estimated), :data:`FLAG_NO_EVENTS`, :data:`FLAG_OUT_OF_RANGE`.
+    flags : uint8, 0 (estimated), :data:`FLAG_NO_EVENTS`, :data:`FLAG_OUT_OF_RANGE`,
+        :data:`FLAG_UNINFORMED`.
     c_on, c_off : float32 the thresholds fitted with the radiance (their priors where no
         event constrains them).
     n_events : int32 events used per pixel.
@@ -1271,7 +1279,7 @@ def estimate(
         with np.errstate(over="ignore"):
             r = np.exp(g)
         r[bad] = np.nan
-        s[bad] = np.nan
+        s[bad & (fl != FLAG_UNINFORMED)] = np.nan
         rad[c] = r.reshape(height, width)
         sd[c] = s.reshape(height, width)
         flags[c] = fl.reshape(height, width)
@@ -1282,10 +1290,12 @@ def estimate(
             progress(c + 1, n)
     n_none = int(np.count_nonzero(flags == FLAG_NO_EVENTS))
     n_out = int(np.count_nonzero(flags == FLAG_OUT_OF_RANGE))
-    if n_none or n_out:
+    n_vague = int(np.count_nonzero(flags == FLAG_UNINFORMED))
+    if n_none or n_out or n_vague:
         logger.info("ml: %d pixel-cycles without events, %d outside the model's range "
-                    "(%.3g to %.3g): NaN", n_none, n_out, math.exp(model.g_lo),
-                    math.exp(model.g_hi))
+                    "(%.3g to %.3g), %d whose events fix L to no better than a factor e: "
+                    "NaN", n_none, n_out, math.exp(model.g_lo), math.exp(model.g_hi),
+                    n_vague)
     return MlResult(radiance=rad, sigma_log=sd, flags=flags, c_on=con, c_off=coff,
                     n_events=nev)
 
