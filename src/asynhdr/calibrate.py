@@ -49,6 +49,7 @@ from asynhdr.source import Progress, Source, as_source
 
 __all__ = [
     "CMAP_MAX_GAIN",
+    "CMAP_MIN_LEVEL",
     "CMap",
     "cmap_from_levels",
     "cmap_key",
@@ -66,8 +67,12 @@ a pixel that is hot, dead or whose flat-field level is noise."""
 
 
 
+CMAP_MIN_LEVEL = 1e-6
+"""A pixel whose mean flat-field level is smaller than this fired nothing: it keeps 1."""
+
+
 def cmap_from_levels(total: np.ndarray, n_cycles: int, *,
-                     min_abs_level: float = 1e-6) -> tuple[np.ndarray, int]:
+                     min_abs_level: float = CMAP_MIN_LEVEL) -> tuple[np.ndarray, int]:
     """One weighting's c-map, ``median(l) / l_p``, from the per-pixel sums of the level
     ``l`` over ``n_cycles`` flat-field cycles. Pixels whose level measures no threshold
     (module docstring) get 1; returns the map (float32) and their number
@@ -140,7 +145,7 @@ def estimate_cmap(
     windows: CycleWindows | None = None,
     threshold_on: float | None = None,
     threshold_off: float | None = None,
-    min_abs_level: float = 1e-6,
+    min_abs_level: float = CMAP_MIN_LEVEL,
     progress: Progress | None = None,
 ) -> CMap:
     """Estimate the c-map from flat-field captures.
