@@ -244,3 +244,21 @@ def test_linear_run_takes_the_scale_of_the_levels_it_measures() -> None:
     assert none.n_levels == 0 and none.span_db == 0.0
     with pytest.raises(ValueError, match="ascending"):
         linear_run(lv[::-1], mu, snr)
+
+
+def test_mosaic_draws_holes_in_their_own_colour(tmp_path) -> None:
+    # a bright scene whose method left its brightest pixel without a value: the hole is
+    # drawn magenta, not black (it would read as a dark spot), and the truth as it is
+    import matplotlib.image as mpimg
+
+    from asynhdr.plots import HOLE_RGB, plot_mosaic
+
+    truth = np.geomspace(1.0, 1e4, 64 * 64).reshape(64, 64)
+    img = truth.copy()
+    img[40:, 40:] = np.nan
+    path = plot_mosaic([truth, img], ["truth", "method"], tmp_path / "m.png", columns=2,
+                       reference=truth)
+    rgb = (mpimg.imread(path)[..., :3] * 255).round().astype(int)
+    magenta = np.all(np.abs(rgb - np.array(HOLE_RGB)) <= 2, axis=2)
+    left, right = magenta[:, : rgb.shape[1] // 2], magenta[:, rgb.shape[1] // 2:]
+    assert right.sum() > 20 and left.sum() == 0

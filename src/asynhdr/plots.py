@@ -18,6 +18,7 @@ if TYPE_CHECKING:
     from asynhdr.experiments import ChartResult, MethodResult
 
 __all__ = [
+    "HOLE_RGB",
     "plot_chart_response",
     "plot_input_snr",
     "plot_k_sweep",
@@ -162,6 +163,10 @@ def plot_k_sweep(sweeps: dict[str, list[dict[str, Any]]], path: str | os.PathLik
     return _save(fig, path)
 
 
+HOLE_RGB = (255, 0, 255)
+"""Colour of the pixels an image leaves without a value in :func:`plot_mosaic`."""
+
+
 def plot_mosaic(
     images: Sequence[np.ndarray],
     titles: Sequence[str],
@@ -173,7 +178,10 @@ def plot_mosaic(
 ) -> Path:
     """Tone-mapped images side by side with titles. With ``reference``, every image uses
     the reference's log tone map (same black and white in radiance), so brightness can
-    be compared across panels; otherwise each is tone-mapped on its own."""
+    be compared across panels, and the pixels an image leaves without a value (NaN, or 0
+    and below, as :func:`asynhdr.experiments.finite_image` writes NaN) are drawn in
+    :data:`HOLE_RGB`, not black: a hole in the brightest part of a scene would otherwise
+    read as a dark spot. Otherwise each is tone-mapped on its own."""
     plt = _pyplot()
     n = len(images)
     columns = min(columns, n)
@@ -188,12 +196,23 @@ def plot_mosaic(
     if reference is not None:
         pos = reference[reference > 0]
         lo, hi = (float(v) for v in np.percentile(pos, [0.5, 99.5]))
+    any_hole = False
     for ax, img, title in zip(axes, images, titles, strict=False):
         if reference is not None and hi > lo:
             v = (np.log(np.clip(img, lo, hi)) - math.log(lo)) / (math.log(hi) - math.log(lo))
             disp = np.floor(np.clip(v, 0, 1) * 255 + 0.5)
         else:
             disp = tonemap(img, method=tonemap_method)
-        ax.imshow(disp, cmap="gray", vmin=0, vmax=255)
+        grey = np.nan_to_num(np.asarray(disp, dtype=np.float64), nan=0.0).astype(np.uint8)
+        rgb = np.repeat(grey[..., None], 3, axis=2)
+        if reference is not None and img is not reference:
+            with np.errstate(invalid="ignore"):
+                holes = ~(np.asarray(img) > 0)
+            rgb[holes] = HOLE_RGB
+            any_hole = any_hole or bool(holes.any())
+        ax.imshow(rgb)
         ax.set_title(title, fontsize=8)
+    if any_hole:
+        fig.text(0.5, 0.005, "magenta: pixels the method leaves without a value",
+                 ha="center", va="bottom", fontsize=8)
     return _save(fig, path)
