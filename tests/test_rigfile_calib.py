@@ -17,7 +17,7 @@ from asynhdr.calib import (
     thresholds_from_flats,
     write_sweep_csv,
 )
-from asynhdr.design import DESIGNED, _longest_run, default_rig, predict
+from asynhdr.design import DESIGNED, default_rig, predict
 from asynhdr.io.calibration import read_calibration, write_calibration
 from asynhdr.io.rigfile import read_rig, write_rig
 from asynhdr.panel import tn_panel
@@ -68,18 +68,22 @@ def test_rig_file_errors_name_file_and_field(tmp_path: Path) -> None:
         read_rig(p)
 
 
-def test_thresholds_from_flats_recover_simulated_thresholds() -> None:
+def test_thresholds_from_flats_recover_simulated_thresholds(caplog) -> None:
     # flat fields 30x brighter (ON events) and 30x darker (OFF events) than L_const, 2
-    # captures x 4 cycles each, IMX636 model with all its noise: the per-pixel ON and OFF
-    # thresholds come back within 0.005 (RMS; the mismatch is 0.05), and 90 % of the
-    # pixels within three stated errors
+    # captures x 4 cycles each, IMX636 model with all its noise, captured through a
+    # region of interest (the 384 pixels read alone: the readout keeps up): the per-pixel
+    # ON and OFF thresholds come back within 0.005 (RMS; the mismatch is 0.05), and 90 %
+    # of the pixels within three stated errors
     rig = default_rig("imx636")
     sensor = get_preset("imx636")
+    roi = sensor.with_(name="imx636", array_pixels=0)
     w, h = 24, 16
     rads = [rig.l_const * 30, rig.l_const / 30] * 2
-    caps = [simulate(flat_field(width=w, height=h, radiance=r), rig=rig, sensor=sensor,
+    caps = [simulate(flat_field(width=w, height=h, radiance=r), rig=rig, sensor=roi,
                      n_cycles=4, rng=i, sensor_seed=7) for i, r in enumerate(rads)]
-    cal = thresholds_from_flats(caps, radiance=rads, rig=rig, sensor=sensor)
+    with caplog.at_level("WARNING", logger="asynhdr.calib"):
+        cal = thresholds_from_flats(caps, radiance=rads, rig=rig, sensor=sensor)
+    assert "readout delayed" not in caplog.text
     c_on, c_off = draw_thresholds(sensor, width=w, height=h, rng=np.random.default_rng(7))
     assert cal.c_on is not None and cal.c_off is not None
     assert cal.sigma_on is not None and cal.sigma_off is not None
@@ -89,6 +93,14 @@ def test_thresholds_from_flats_recover_simulated_thresholds() -> None:
         assert float(np.mean(np.abs(e) < 3 * err + 1e-3)) >= 0.9
         assert float(np.std(true)) > 0.03  # the mismatch it removes
     assert cal.how["cycles"] == 12  # the first cycle of each capture is left out
+    # the same flat field on the whole array (these pixels' share of its readout): every
+    # pixel fires at once, the queue delays the events, and the calibration says so
+    whole = simulate(flat_field(width=w, height=h, radiance=rads[0]), rig=rig, sensor=sensor,
+                     n_cycles=2, rng=0, sensor_seed=7)
+    assert whole.metadata["readout"]["max_delay_us"] > 10.0
+    with caplog.at_level("WARNING", logger="asynhdr.calib"):
+        thresholds_from_flats([whole], radiance=rads[0], rig=rig, sensor=sensor)
+    assert "readout delayed" in caplog.text
 
 
 def test_calibration_file_round_trip(tmp_path: Path) -> None:
@@ -148,11 +160,11 @@ def test_designed_defaults_and_prediction() -> None:
     # and its floor at 0.5 L_const)
     assert set(DESIGNED) >= {"ideal", "v2e", "davis346", "imx636"}
     levels = np.geomspace(0.1, 10 ** 5.5, 14)
-    snr = predict(default_rig("ideal"), get_preset("ideal"), levels=levels)
-    db, lo, _ = _longest_run(levels, snr >= 20.0)
+    pred = predict(default_rig("ideal"), get_preset("ideal"), levels=levels)
+    db, lo, _, _ = pred.run(20.0)
     assert db == pytest.approx(130.0) and lo == pytest.approx(0.1)
-    snr_p = predict(Rig(l_const=10.0), get_preset("ideal"), levels=levels)
-    db_p, _, _ = _longest_run(levels, snr_p >= 20.0)
+    assert pred.readout_load == 0.0 and np.all(pred.bias == 0.0)  # no readout limit
+    db_p, _, _, _ = predict(Rig(l_const=10.0), get_preset("ideal"), levels=levels).run(20.0)
     assert db_p <= 90.0
 
 
@@ -163,7 +175,7 @@ def test_design_families() -> None:
 
     for preset, p in DESIGNED.items():
         assert p["family"] in FAMILIES, preset
-        assert default_rig(preset).period_us == 50_000
+        assert default_rig(preset).period_us == round(1e6 / p["frame_rate_hz"])
     with pytest.raises(ValueError, match="unknown rig families"):
         design("ideal", families=("zigzag",))
     with pytest.raises(ValueError, match="2 b <= ramp_fraction"):
@@ -211,8 +223,9 @@ def test_ml_fits_thresholds_jointly_where_the_events_identify_them() -> None:
 
 
 def test_cli_calibrate_thresholds_then_reconstruct_with_calibration(tmp_path: Path) -> None:
-    # simulate --rig-out, flat fields above and below L_const, calibrate-thresholds, then
-    # reconstruct --calibration: the file holds per-pixel maps and ml uses them
+    # simulate --rig-out, flat fields above and below L_const (through a region of
+    # interest the readout keeps up with), calibrate-thresholds, then reconstruct
+    # --calibration: the file holds per-pixel maps and ml uses them
     from typer.testing import CliRunner
 
     from asynhdr.cli import _register, app
@@ -227,7 +240,8 @@ def test_cli_calibrate_thresholds_then_reconstruct_with_calibration(tmp_path: Pa
         f = tmp_path / f"flat{i}.h5"
         res = runner.invoke(app, ["simulate", f"flat:{r}", "-o", str(f), "--width", "12",
                                   "--height", "8", "--preset", "imx636", "--n-cycles", "3",
-                                  "--seed", str(i), "--rig-out", str(rig), "--overwrite"])
+                                  "--seed", str(i), "--rig-out", str(rig), "--roi",
+                                  "--overwrite"])
         assert res.exit_code == 0, res.output
         flats.append(str(f))
     cal = tmp_path / "cal.npz"
@@ -242,7 +256,8 @@ def test_cli_calibrate_thresholds_then_reconstruct_with_calibration(tmp_path: Pa
     assert float(np.sqrt(np.mean((back.c_off - c_off) ** 2))) < 0.01
     scene = tmp_path / "scene.h5"
     res = runner.invoke(app, ["simulate", "flat:2000", "-o", str(scene), "--width", "12",
-                              "--height", "8", "--preset", "imx636", "--n-cycles", "2"])
+                              "--height", "8", "--preset", "imx636", "--n-cycles", "2",
+                              "--roi"])
     assert res.exit_code == 0, res.output
     res = runner.invoke(app, ["reconstruct", str(scene), "-o", str(tmp_path / "img"),
                               "--method", "ml", "--calibration", str(cal), "--formats", "exr"])

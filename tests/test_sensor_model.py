@@ -111,7 +111,7 @@ def test_arbiter_rate_limit_and_accounting(mode: str) -> None:
     ev["x"] = rng.integers(0, 100, ev.size)
     rate_hz = 1e6  # one event per µs
     sensor = SensorParams(max_event_rate_hz=rate_hz, arbiter=mode, arbiter_buffer_events=500)
-    out, st = apply_arbiter(ev, sensor)
+    out, st = apply_arbiter(ev, sensor, n_pixels=100)
     assert st.emitted == ev.size
     assert st.delivered + st.dropped == st.emitted
     assert out.size == st.delivered
@@ -127,6 +127,26 @@ def test_arbiter_rate_limit_and_accounting(mode: str) -> None:
     else:
         assert st.dropped > 0
         assert out.size < ev.size
+
+
+@pytest.mark.parametrize("n_pixels", [100, 1000])
+def test_readout_share_keeps_the_per_pixel_load(n_pixels: int) -> None:
+    """A simulation of n pixels of a 1000-pixel array gets n/1000 of its readout: every
+    pixel firing once at t = 0 leaves the last event (n - 1) service times late, one
+    service time being 1000 / (n rate), so the queue empties after the same 999 µs at
+    any size (rate 1e6/s: 1 µs per event for the whole array)."""
+    ev = _burst(n_pixels, 0)
+    ev["x"] = np.arange(n_pixels) % 100
+    sensor = SensorParams(max_event_rate_hz=1e6, array_pixels=1000)
+    assert sensor.readout(n_pixels) == (1e6 * n_pixels / 1000, max(1.0, 1024 * n_pixels / 1000))
+    out, st = apply_arbiter(ev, sensor, n_pixels=n_pixels)
+    service = 1000 / n_pixels
+    assert st.max_delay_us == pytest.approx((n_pixels - 1) * service)
+    assert int(out["t"][-1]) == math.floor((n_pixels - 1) * service)
+    # without the share (a region read alone) the same burst clears n times faster
+    alone = SensorParams(max_event_rate_hz=1e6)
+    _, st1 = apply_arbiter(_burst(n_pixels, 0), alone, n_pixels=n_pixels)
+    assert st1.max_delay_us == pytest.approx(n_pixels - 1)
 
 
 @pytest.mark.parametrize("preset", sorted(PRESETS))
@@ -150,6 +170,8 @@ def test_every_preset_same_seed_same_events(preset: str) -> None:
         ({"max_event_rate_hz": float("inf")}, "max_event_rate_hz"),
         ({"arbiter": "queue"}, "arbiter"),
         ({"cutoff_hz": -3.0}, "cutoff_hz"),
+        ({"array_pixels": -1}, "array_pixels"),
+        ({"array_pixels": 2.5}, "array_pixels"),
     ],
 )
 def test_bad_sensor_parameters_name_the_parameter(kwargs, match) -> None:

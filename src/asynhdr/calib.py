@@ -138,6 +138,20 @@ class Calibration:
 # ----------------------------------------------------------------------------- thresholds
 
 
+def _warn_readout(cap: Recording, what: str) -> None:
+    """Warn when the readout's queue moved a capture's timestamps by more than the
+    sensor's µs: every pixel of a flat field fires at once, and the queue turns pixel
+    order into time."""
+    ro = cap.metadata.get("readout") or {}
+    delay = float(ro.get("max_delay_us") or 0.0)
+    if delay > 1.0:
+        logger.warning("%s: the readout delayed %s of %s events of a capture by up to %.0f "
+                       "µs; thresholds fitted to them carry that delay. Capture flat "
+                       "fields through a region of interest the readout keeps up with (or "
+                       "at a lower cycle rate).", what, f"{int(ro.get('delayed', 0)):,}",
+                       f"{int(ro.get('emitted', 0)):,}", delay)
+
+
 def thresholds_from_flats(
     captures: Iterable[Recording],
     *,
@@ -182,6 +196,7 @@ def thresholds_from_flats(
                              f"expected {w}x{h}")
         if not (lf > 0 and math.isfinite(lf)):
             raise ValueError(f"thresholds_from_flats: flat radiance must be positive, got {lf}")
+        _warn_readout(cap, "thresholds_from_flats")
         starts = _starts(cap, rig)
         if skip_first_cycle and starts.size > 1:
             starts = starts[1:]

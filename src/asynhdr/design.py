@@ -60,8 +60,10 @@ __all__ = [
     "DEFAULT_SCENE_RANGE",
     "DESIGNED",
     "FAMILIES",
+    "MAX_BIAS",
     "SPLITS",
     "DesignResult",
+    "Prediction",
     "default_rig",
     "design",
     "predict",
@@ -79,6 +81,10 @@ DEFAULT_SCENE_RANGE = (0.1, 10 ** 5.5)
 
 DEFAULT_MIN_SNR_DB = 20.0
 """Per-pixel SNR a level needs to count in the predicted range."""
+
+MAX_BIAS = 0.05
+"""The largest error in ``ln L`` (about 5 %) the readout's queue may make at a level that
+counts in the predicted range."""
 
 RAMP_FRACTION = 0.9
 """The part of the cycle the designed rigs integrate (ramps and hold); the rest returns."""
@@ -158,16 +164,16 @@ class DesignResult:
     ----------
     rig : the rig.
     params : the design's parameters (``family``, ``l_const``, ``a``, ``b``, floors, period).
-    levels : radiances evaluated (scene unit); ``snr_db`` their predicted per-pixel SNR.
-    range_db : the predicted dynamic range (longest run with ``snr_db >= min_snr_db``);
+    prediction : what the rig is predicted to give at each level (:class:`Prediction`).
+    range_db : the predicted dynamic range (the longest run of levels with
+        ``snr_db >= min_snr_db`` and the readout's bias within :data:`MAX_BIAS`);
         ``l_lo``, ``l_hi`` its ends.
     candidates : every candidate tried, with its range.
     """
 
     rig: Rig
     params: dict[str, Any]
-    levels: np.ndarray
-    snr_db: np.ndarray
+    prediction: Prediction
     range_db: float
     l_lo: float
     l_hi: float
@@ -175,10 +181,21 @@ class DesignResult:
     sensor: SensorParams
     candidates: list[dict[str, Any]] = field(default_factory=list)
 
+    @property
+    def levels(self) -> np.ndarray:
+        return self.prediction.levels
+
+    @property
+    def snr_db(self) -> np.ndarray:
+        return self.prediction.snr_db
+
     def summary(self) -> dict[str, Any]:
+        pr = self.prediction
         return {"params": self.params, "range_db": self.range_db, "l_lo": self.l_lo,
                 "l_hi": self.l_hi, "min_snr_db": self.min_snr_db, "sensor": self.sensor.name,
-                "levels": self.levels.tolist(), "snr_db": self.snr_db.tolist(),
+                "levels": pr.levels.tolist(), "snr_db": pr.snr_db.tolist(),
+                "readout_bias": pr.bias.tolist(), "events_per_cycle": pr.events_per_cycle,
+                "readout_load": pr.readout_load, "max_delay_us": pr.max_delay_us,
                 "candidates": self.candidates}
 
 
@@ -200,15 +217,57 @@ def _longest_run(levels: np.ndarray, ok: np.ndarray) -> tuple[float, float, floa
     return best
 
 
+@dataclass(frozen=True, eq=False)
+class Prediction:
+    """What a rig is predicted to give ``ml`` at each radiance of ``levels``.
+
+    Attributes
+    ----------
+    snr_db : per-pixel SNR (dB): ``-20 log10`` of the median Cramér-Rao bound on ``ln L``
+        over the level's pixels; ``-inf`` where they fire fewer than two events.
+    bias : ``ml``'s median error in ``ln L`` on the same noiseless events after the
+        readout's queue (0 where the readout keeps up); NaN where it gives no estimate.
+    events_per_cycle : events per pixel and cycle, the mean over the levels.
+    readout_load : the array's mean event rate over the cycle as a fraction of its
+        readout (0: no limit), with the levels spread evenly over the array.
+    max_delay_us : the longest the readout's queue held an event.
+    """
+
+    levels: np.ndarray
+    snr_db: np.ndarray
+    bias: np.ndarray
+    events_per_cycle: float
+    readout_load: float
+    max_delay_us: float
+
+    def counts(self, min_snr_db: float, max_bias: float = MAX_BIAS) -> np.ndarray:
+        """Levels that count in the range: SNR at least ``min_snr_db`` and ``|bias|`` at
+        most ``max_bias``."""
+        with np.errstate(invalid="ignore"):
+            return (self.snr_db >= min_snr_db) & (np.abs(self.bias) <= max_bias)
+
+    def run(self, min_snr_db: float) -> tuple[float, float, float, float]:
+        """The predicted range: ``(dB, lowest level, highest level, mean SNR over it)``
+        of the longest run of levels that count."""
+        db, lo, hi = _longest_run(self.levels, self.counts(min_snr_db))
+        inside = (self.levels >= lo) & (self.levels <= hi)
+        return db, lo, hi, float(np.mean(self.snr_db[inside])) if db > 0 else 0.0
+
+
 def predict(rig: Rig, sensor: SensorParams, *, levels: np.ndarray, pixels: int = 8,
-            rng: int = 0) -> np.ndarray:
-    """Predicted per-pixel SNR (dB) of ``ml`` at each radiance of ``levels``:
-    ``-20 log10`` of the median over ``pixels`` pixels of the Cramér-Rao bound on
-    ``ln L`` (:func:`asynhdr.ml.fisher_information`), evaluated on the events the sensor
-    fires without noise (reset noise, jitter and background off; its thresholds drawn
-    with their mismatch), with the noise of the real sensor in the model. Levels whose
-    pixels fire fewer than two events get ``-inf``."""
-    from asynhdr.ml import cached_model, fisher_information, thresholds_prior
+            rng: int = 0) -> Prediction:
+    """What ``ml`` is predicted to give at each radiance of ``levels``
+    (:class:`Prediction`).
+
+    The sensor fires without noise (reset noise, jitter and background off; its
+    thresholds drawn with their mismatch) on ``pixels`` pixels per level. The SNR is the
+    Cramér-Rao bound of those events with the noise of the real sensor in the model. The
+    same events then pass the readout (the array's share for these pixels,
+    :meth:`SensorParams.readout`: the levels stand for an array whose pixels spread
+    evenly over them), and ``ml`` with the drawn thresholds estimates ``L`` from the
+    delayed events: its error is the bias the readout's queue makes."""
+    from asynhdr.ml import cached_model, estimate, fisher_information, thresholds_prior
+    from asynhdr.sensor.noise import apply_arbiter
     from asynhdr.simulate import draw_thresholds, simulate
 
     quiet = sensor.with_(name="quiet", reset_noise_sigma=0.0, jitter_sigma_us=0.0,
@@ -222,11 +281,26 @@ def predict(rig: Rig, sensor: SensorParams, *, levels: np.ndarray, pixels: int =
                    thresholds=(c_on, c_off))
     model = cached_model(rig, sensor, window_us=rig.ramp_us)
     pri = thresholds_prior(sensor, width=w, height=h, c_on=c_on, c_off=c_off, sigma=0.002)
-    sd = fisher_information(rec.events, width=w, height=h, start_us=int(rig.period_us),
+    start = int(rig.period_us)
+    sd = fisher_information(rec.events, width=w, height=h, start_us=start,
                             model=model, priors=pri, log_radiance=np.log(scene))
     with np.errstate(invalid="ignore", divide="ignore"):
         med = np.nanmedian(np.where(np.isfinite(sd), sd, np.inf), axis=1)
-        return np.where(np.isfinite(med), -20.0 * np.log10(med), -np.inf)
+        snr = np.where(np.isfinite(med), -20.0 * np.log10(med), -np.inf)
+    second = rec.events[rec.events["t"] >= start]
+    per_cycle = second.size / (h * w)
+    rate, _ = sensor.readout(h * w)
+    load = per_cycle * 1e6 / rig.period_us / rate * (h * w) if rate > 0 else 0.0
+    delayed, stats = apply_arbiter(rec.events.copy(), sensor, n_pixels=h * w)
+    bias = np.zeros(lv.size)
+    if stats.delayed:
+        res = estimate(delayed, width=w, height=h, starts_us=np.array([start]), model=model,
+                       priors=pri)
+        err = np.log(res.radiance[0].astype(np.float64)) - np.log(scene)
+        with np.errstate(invalid="ignore"):
+            bias = np.where(np.isfinite(err).all(axis=1), np.median(err, axis=1), np.nan)
+    return Prediction(levels=lv, snr_db=snr, bias=bias, events_per_cycle=float(per_cycle),
+                      readout_load=float(load), max_delay_us=float(stats.max_delay_us))
 
 
 def design(
@@ -273,7 +347,7 @@ def design(
         l_consts = [float(x) for x in np.geomspace(lo, hi, 8)]
     floor = 1.0 / contrast_ratio
     tried: list[dict[str, Any]] = []
-    best: tuple[tuple[float, bool, float], Rig, dict[str, Any], np.ndarray] | None = None
+    best: tuple[tuple[float, bool, float], Rig, dict[str, Any], Prediction] | None = None
     total = len(l_consts) * sum(len(SPLITS[f]) for f in families)
     k = 0
     for family in families:
@@ -281,51 +355,57 @@ def design(
             for a, b in SPLITS[family]:
                 rig = FAMILIES[family](period_us=period, l_const=lc, a=a, b=b, floor_1=floor,
                                        floor_2=floor)
-                snr = predict(rig, sensor, levels=levels)
-                db, lo_, hi_ = _longest_run(levels, snr >= min_snr_db)
-                mean_snr = (float(np.mean(snr[(levels >= lo_) & (levels <= hi_)]))
-                            if db > 0 else 0.0)
+                pred = predict(rig, sensor, levels=levels)
+                db, lo_, hi_, mean_snr = pred.run(min_snr_db)
                 params: dict[str, Any] = {"family": family, "l_const": lc, "a": a, "b": b,
                                           "floor_1": floor, "floor_2": floor,
                                           "period_us": float(period)}
-                tried.append(dict(params, range_db=db, mean_snr_db=mean_snr))
+                tried.append(dict(params, range_db=db, mean_snr_db=mean_snr,
+                                  events_per_cycle=pred.events_per_cycle,
+                                  readout_load=pred.readout_load,
+                                  max_delay_us=pred.max_delay_us))
                 key = (db, family == "sequential", mean_snr)
                 if best is None or key > best[0]:
-                    best = (key, rig, params, snr)
+                    best = (key, rig, params, pred)
                 k += 1
                 if progress is not None:
                     progress(k, total)
                 logger.info("design %s: %s L_const %.4g a %.2f b %.2f -> %.1f dB, mean SNR "
-                            "%.1f dB", sensor.name, family, lc, a, b, db, mean_snr)
+                            "%.1f dB, readout load %.2f", sensor.name, family, lc, a, b, db,
+                            mean_snr, pred.readout_load)
     assert best is not None
-    _, rig, params, snr = best
-    db, lo_, hi_ = _longest_run(levels, snr >= min_snr_db)
-    return DesignResult(rig=rig, params=params, levels=levels, snr_db=snr, range_db=db,
+    _, rig, params, pred = best
+    db, lo_, hi_, _ = pred.run(min_snr_db)
+    return DesignResult(rig=rig, params=params, prediction=pred, range_db=db,
                         l_lo=lo_, l_hi=hi_, min_snr_db=min_snr_db, sensor=sensor,
                         candidates=tried)
 
 
 DESIGNED: dict[str, dict[str, Any]] = {
-    # asynhdr design --preset NAME (defaults: 0.1 to 316,000 lux, 20 cycles/s, 1000:1
-    # panels, per-pixel SNR >= 20 dB); predicted range and mean SNR over it in the comment
+    # asynhdr design --preset NAME [--frame-rate-hz F] (defaults: 0.1 to 316,000 lux, 1000:1
+    # panels, per-pixel SNR >= 20 dB, readout bias <= 5 %); predicted range and mean SNR
+    # over it in the comment
     "ideal": {"family": "sequential", "l_const": 278.55655932390493, "a": 0.35,
-              "b": 0.9},  # 130 dB, 74.2 dB
+              "b": 0.9, "frame_rate_hz": 20.0},  # 130 dB, 74.2 dB
     "v2e": {"family": "sequential", "l_const": 452.8253292719891, "a": 0.35,
-            "b": 0.9},  # 130 dB, 73.7 dB
-    "davis346": {"family": "round_trip", "l_const": 452.8253292719891, "a": 0.2,
-                 "b": 0.45},  # 105 dB, 26.3 dB (sequential: 95 dB)
-    "imx636": {"family": "round_trip", "l_const": 452.8253292719891, "a": 0.2,
-               "b": 0.45},  # 105 dB, 29.4 dB (sequential: 95 dB, 26.9 dB)
+            "b": 0.9, "frame_rate_hz": 20.0},  # 130 dB, 73.7 dB
+    # 12 Mev/s for 346x260 pixels: at 20 cycles/s no rig keeps the queue's bias under 5 %
+    # at any level (0 dB predicted), at 5 cycles/s 25 dB
+    "davis346": {"family": "round_trip", "l_const": 278.55655932390493, "a": 0.2,
+                 "b": 0.45, "frame_rate_hz": 2.0},  # 120 dB, 28.2 dB
+    "imx636": {"family": "round_trip", "l_const": 1196.6450696489756, "a": 0.15,
+               "b": 0.45, "frame_rate_hz": 20.0},  # 105 dB, 29.3 dB
 }
 """The CLI's default rig per sensor preset, as ``asynhdr design --preset NAME`` chose it
-for the default scene range (:data:`DEFAULT_SCENE_RANGE`), 20 cycles per second and
-1000:1 panels (docs/design.md lists the predicted ranges)."""
+for the default scene range (:data:`DEFAULT_SCENE_RANGE`) and 1000:1 panels, at 20
+cycles per second where the sensor's readout carries a useful rig at that rate (the
+DAVIS346 at 2; docs/ml.md lists the predicted ranges)."""
 
 
 def default_rig(preset: str, *, period_us: int | None = None) -> Rig:
     """The designed rig of :data:`DESIGNED` for ``preset`` (a preset without an entry gets
-    the ``v2e`` one)."""
+    the ``v2e`` one), at its frame rate unless ``period_us`` is given."""
     p = DESIGNED.get(preset, DESIGNED["v2e"])
-    period = round(1e6 / DEFAULT_FRAME_RATE_HZ) if period_us is None else int(period_us)
+    period = round(1e6 / float(p["frame_rate_hz"])) if period_us is None else int(period_us)
     return FAMILIES[str(p["family"])](period_us=period, l_const=float(p["l_const"]),
                                       a=float(p["a"]), b=float(p["b"]))

@@ -590,7 +590,7 @@ def finish_recording(parts: list[CycleEvents]) -> Recording:
         events["t"] = (events["t"] // step) * step
     n_emitted = int(events.size)
     n_background = n_arrivals - n_lost
-    events, stats = apply_arbiter(events, sensor)
+    events, stats = apply_arbiter(events, sensor, n_pixels=npix)
     metadata = {k: v for k, v in ctx.items()
                 if k not in ("width", "height", "hot_pixels", "dead_pixels", "scene_metadata")}
     metadata["counts"] = {"signal": n_emitted - n_background, "background": n_background,
@@ -598,7 +598,8 @@ def finish_recording(parts: list[CycleEvents]) -> Recording:
                           "hot_pixels": ctx["hot_pixels"], "dead_pixels": ctx["dead_pixels"]}
     metadata["readout"] = {"emitted": stats.emitted, "delivered": stats.delivered,
                            "delayed": stats.delayed, "dropped": stats.dropped,
-                           "max_delay_us": stats.max_delay_us}
+                           "max_delay_us": stats.max_delay_us,
+                           "rate_hz": sensor.readout(npix)[0]}
     for key, value in ctx["scene_metadata"].items():  # what the scene says of itself (a CFA)
         metadata.setdefault(key, value)
     width, height = ctx["width"], ctx["height"]

@@ -376,6 +376,9 @@ def simulate(
                                          "scheduler's address; same events as without."),
     workers: int | None = typer.Option(None, help="With --scheduler local: worker "
                                        "processes (default: one per core)."),
+    roi: bool = typer.Option(False, "--roi", help="The pixels are a region of interest read "
+                             "alone: the readout serves them at its full rate (default: "
+                             "they stand for the whole array and get their share of it)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing file."),
 ) -> None:
     """Simulate a scene seen through the rig and write the recording."""
@@ -389,6 +392,7 @@ def simulate(
         rig = _simulate_rig(preset, rig_file, period_us=period_us, ramp_fraction=ramp_fraction,
                             t1_shape=t1_shape, t2_shape=t2_shape, l_const=l_const,
                             panel=panel, pre_emphasis=pre_emphasis)
+        seen = sensor.with_(name=sensor.name, array_pixels=0) if roi else sensor
         if scale is not None and not (scale > 0 and math.isfinite(scale)):
             fail(f"--scale must be a positive number, got {scale}")
         sc = _scene_from_spec(scene, width, height, scale,
@@ -397,7 +401,7 @@ def simulate(
         if motion is not None:
             sc = _moving(sc, motion, duration_us=n_cycles * rig.period_us,
                          frame_step_us=frame_step_us)
-        kw: dict[str, Any] = dict(rig=rig, sensor=sensor, n_cycles=n_cycles, rng=seed,
+        kw: dict[str, Any] = dict(rig=rig, sensor=seen, n_cycles=n_cycles, rng=seed,
                                   sensor_seed=sensor_seed, engine=engine, dt_us=dt_us)
         if scheduler is not None:
             from asynhdr.distributed import scheduler_client, simulate_distributed
@@ -423,6 +427,13 @@ def simulate(
     console.print(f"{rec.events.size:,} events, {rec.triggers.size} triggers, "
                   f"{rec.width}x{rec.height} -> {out}" + (f" (rig -> {rig_out})" if rig_out
                                                            else ""))
+    ro = rec.metadata.get("readout") or {}
+    if ro.get("delayed"):
+        share = "" if roi or not sensor.array_pixels else (
+            f", these {rec.width * rec.height:,} pixels' share of the array's "
+            f"{sensor.max_event_rate_hz:.3g} ev/s; --roi reads them alone")
+        console.print(f"readout: {ro['delayed']:,} of {ro['emitted']:,} events delayed, by up "
+                      f"to {ro['max_delay_us']:.0f} µs ({ro['rate_hz']:.3g} ev/s{share})")
 
 
 def _rig_middle(rig: Any) -> float:

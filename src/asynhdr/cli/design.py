@@ -14,6 +14,7 @@ from asynhdr.design import (
     DEFAULT_FRAME_RATE_HZ,
     DEFAULT_MIN_SNR_DB,
     DEFAULT_SCENE_RANGE,
+    MAX_BIAS,
 )
 
 __all__ = ["design"]
@@ -41,12 +42,13 @@ def design(
 ) -> None:
     """Choose the rig family (sequential, or round trip: there and back in one cycle),
     L_const and the ramps' split that maximise the range over which ml's predicted
-    per-pixel SNR (the model's Cramér-Rao bound) is at least --min-snr-db; print it and
-    write the rig file."""
+    per-pixel SNR (the model's Cramér-Rao bound) is at least --min-snr-db and the
+    readout's queue (at the sensor's full array) moves ml's estimate by at most 5 %; print
+    it and write the rig file."""
     import numpy as np
 
-    from asynhdr.design import _longest_run, predict
     from asynhdr.design import design as run
+    from asynhdr.design import predict
     from asynhdr.rig import Rig
     from asynhdr.sensor.params import get_preset
 
@@ -71,10 +73,11 @@ def design(
                                                  t2_shape="exponential", t2_stop=1.0),
         }
         for name, rig in alts.items():
-            snr = predict(rig, sensor, levels=res.levels)
-            db, lo, hi = _longest_run(res.levels, snr >= min_snr_db)
-            rows[name] = snr
-            others[name] = {"range_db": db, "l_lo": lo, "l_hi": hi}
+            pred = predict(rig, sensor, levels=res.levels)
+            db, lo, hi, _ = pred.run(min_snr_db)
+            rows[name] = pred.snr_db
+            others[name] = {"range_db": db, "l_lo": lo, "l_hi": hi,
+                            "readout_load": pred.readout_load}
     table = Table(title=f"Predicted per-pixel SNR of ml (dB), sensor '{preset}', "
                   f"{frame_rate_hz:g} cycles/s")
     table.add_column("radiance (lux)", justify="right")
@@ -92,8 +95,22 @@ def design(
                   f"over phase 0..{p['a']:.2f}, reference closes over "
                   f"{p['a']:.2f}..{p['b']:.2f} to {p['floor_2']:g}{back}, hold to "
                   f"{res.rig.ramp_fraction:.2f}; cycle {int(p['period_us'])} µs")
-    console.print(f"predicted range (per-pixel SNR >= {min_snr_db:g} dB): "
-                  f"[bold]{res.range_db:.1f} dB[/] ({res.l_lo:.3g} to {res.l_hi:.3g} lux)")
+    pr = res.prediction
+    console.print(f"predicted range (per-pixel SNR >= {min_snr_db:g} dB, readout bias <= "
+                  f"{MAX_BIAS:.0%}): [bold]{res.range_db:.1f} dB[/] ({res.l_lo:.3g} to "
+                  f"{res.l_hi:.3g} lux)")
+    if sensor.max_event_rate_hz > 0:
+        n_bad = int(np.count_nonzero((pr.snr_db >= min_snr_db) & ~pr.counts(min_snr_db)))
+        console.print(f"readout: {pr.events_per_cycle:.1f} events per pixel and cycle, "
+                      f"{pr.readout_load:.0%} of the {sensor.max_event_rate_hz:.3g} ev/s "
+                      f"readout on average; the queue holds events up to "
+                      f"{pr.max_delay_us:.0f} µs"
+                      + (f"; {n_bad} levels lose more than {MAX_BIAS:.0%} to it" if n_bad
+                         else ""))
+        if pr.readout_load > 0:
+            console.print(f"  the readout carries this rig's events at up to "
+                          f"{frame_rate_hz / pr.readout_load:.3g} cycles/s on average "
+                          f"(bursts need more)")
     for name, o in others.items():
         console.print(f"  {name}: {o['range_db']:.1f} dB ({o['l_lo']:.3g} to {o['l_hi']:.3g})")
     if out is not None:

@@ -236,7 +236,7 @@ class Arbiter:
     """The shared readout, with its queue carried from chunk to chunk."""
 
     def __init__(self, max_event_rate_hz: float, *, mode: str = "delay",
-                 buffer_events: int = 1024) -> None:
+                 buffer_events: float = 1024) -> None:
         self.service_us = 1e6 / max_event_rate_hz
         self.drop = mode == "drop"
         self.buffer = float(buffer_events)
@@ -259,12 +259,14 @@ class Arbiter:
         return out
 
 
-def apply_arbiter(events: np.ndarray, sensor: SensorParams) -> tuple[np.ndarray, ArbiterStats]:
-    """Pass time-sorted events through the readout of ``sensor`` (all at once)."""
-    if sensor.max_event_rate_hz <= 0:
+def apply_arbiter(events: np.ndarray, sensor: SensorParams, *,
+                  n_pixels: int) -> tuple[np.ndarray, ArbiterStats]:
+    """Pass time-sorted events of ``n_pixels`` simulated pixels through their share of the
+    readout of ``sensor`` (:meth:`SensorParams.readout`), all at once."""
+    rate, buffer = sensor.readout(n_pixels)
+    if rate <= 0:
         n = int(events.size)
         return events, ArbiterStats(emitted=n, delivered=n)
-    arb = Arbiter(sensor.max_event_rate_hz, mode=sensor.arbiter,
-                  buffer_events=sensor.arbiter_buffer_events)
+    arb = Arbiter(rate, mode=sensor.arbiter, buffer_events=buffer)
     out = arb(events)
     return out, arb.stats

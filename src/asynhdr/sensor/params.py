@@ -53,6 +53,11 @@ class SensorParams:
     dead_pixel_fraction : fraction of pixels that never fire.
     max_event_rate_hz : the readout's event-rate limit (events per second for the
         whole array); 0 is unlimited.
+    array_pixels : the pixels of the real array that share the readout. A simulation of
+        ``n`` pixels stands for the whole array: its readout serves ``n / array_pixels``
+        of ``max_event_rate_hz`` (and of ``arbiter_buffer_events``), so each pixel
+        carries the real sensor's load at any simulated size. 0: the rate holds as given
+        for any size (a region of interest read alone).
     arbiter : ``"delay"`` (events queue and their timestamps move later) or ``"drop"``
         (events that find the queue full are lost).
     arbiter_buffer_events : queue length for ``"drop"``.
@@ -83,6 +88,7 @@ class SensorParams:
     arbiter: str = "delay"
     arbiter_buffer_events: int = 1024
     timestamp_resolution_us: int = 1
+    array_pixels: int = 0
 
     def __post_init__(self) -> None:
         def bad(field: str, expected: str) -> ValueError:
@@ -116,6 +122,16 @@ class SensorParams:
         if int(self.timestamp_resolution_us) != self.timestamp_resolution_us or \
                 self.timestamp_resolution_us < 1:
             raise bad("timestamp_resolution_us", "a whole number >= 1")
+        if int(self.array_pixels) != self.array_pixels or self.array_pixels < 0:
+            raise bad("array_pixels", "a whole number >= 0")
+
+    def readout(self, n_pixels: int) -> tuple[float, float]:
+        """The readout that ``n_pixels`` simulated pixels get: ``(events per second,
+        queue length in events)``, the array's share by ``array_pixels`` (0 rate: no
+        limit)."""
+        share = n_pixels / self.array_pixels if self.array_pixels > 0 else 1.0
+        return (self.max_event_rate_hz * share,
+                max(1.0, self.arbiter_buffer_events * share))
 
     @property
     def tau_ref_us(self) -> float:
@@ -201,6 +217,7 @@ PRESETS: dict[str, SensorParams] = {
         refractory_us=1000.0,
         cutoff_hz=_tau_to_cutoff_hz(20.0),
         max_event_rate_hz=12e6,
+        array_pixels=346 * 260,
     ),
     # Sony IMX636 / Prophesee Gen4.1 (Finateu et al., ISSCC 2020: 1280x720, pixel latency
     # about 100 µs at 1 klux, readout up to 1.066 Gev/s). Thresholds at the default
@@ -213,6 +230,7 @@ PRESETS: dict[str, SensorParams] = {
         refractory_us=100.0,
         cutoff_hz=_tau_to_cutoff_hz(100.0),
         max_event_rate_hz=1.066e9,
+        array_pixels=1280 * 720,
     ),
 }
 
