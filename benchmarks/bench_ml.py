@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from asynhdr import ml
-from asynhdr.calib import thresholds_from_flats
+from asynhdr.calib import flat_capture_sensor, thresholds_from_flats
 from asynhdr.calibrate import estimate_cmap
 from asynhdr.design import default_rig
 from asynhdr.metrics import central_rois, linear_run
@@ -33,11 +33,6 @@ L_TOP = 10 ** 5.5
 DENSITIES = np.linspace(0.0, 6.5, LEVELS)  # 316,000 lux down to 0.1 lux
 MAX_BIAS = 0.05
 MIN_SNR_DB = 20.0
-FLAT_ROI_PIXELS = 4096
-"""Flat fields are captured through regions of interest of this many pixels, read one at
-a time: on the whole array every pixel of a flat field fires at once and the readout's
-queue stamps the events late (a wave of 4,096 events takes 3.8 µs at the IMX636's
-1.066 Gev/s). Simulated as one capture whose pixels each get that region's share."""
 
 
 def chart_figures(img: np.ndarray, scene: Any) -> dict[str, Any]:
@@ -81,8 +76,7 @@ def run_preset(preset: str, *, width: int, height: int, seed: int = 0,
     t_sim = time.perf_counter() - t0
     # calibration: thresholds from flat fields 30x above and below L_const; the paper's
     # c-map from flat fields at L_const; both through regions of interest
-    roi = sensor.with_(name=sensor.name, array_pixels=FLAT_ROI_PIXELS
-                       if sensor.array_pixels else 0)
+    roi = flat_capture_sensor(sensor, width * height)
     rads = [rig.l_const * 30, rig.l_const / 30] * 2
     flats = [simulate(flat_field(width=width, height=height, radiance=r), rig=rig,
                       sensor=roi, n_cycles=3, rng=100 + i, sensor_seed=1)

@@ -264,3 +264,26 @@ def test_cli_calibrate_thresholds_then_reconstruct_with_calibration(tmp_path: Pa
     assert res.exit_code == 0, res.output
     img = read_image(tmp_path / "img" / "scene_ml_0001.exr")
     assert abs(float(np.nanmedian(img)) / 2000.0 - 1.0) < 0.03
+
+
+def test_design_prediction_counts_the_readout_queue() -> None:
+    # the IMX636's round trip at 20 cycles/s (L_const 1196.6, a 0.15): without a readout
+    # limit the queue biases nothing; at the array's readout the levels spread evenly keep
+    # most of the range; with a quarter of the array at one radiance (its pixels fire in
+    # the same instant) the queue biases levels past 5 % and the range shrinks by 30 dB or
+    # more
+    from asynhdr.design import MAX_BIAS, round_trip_rig
+
+    rig = round_trip_rig(period_us=50_000, l_const=1196.6450696489756, a=0.15, b=0.45)
+    imx = get_preset("imx636")
+    levels = np.geomspace(0.1, 10 ** 5.5, 14)
+    free = predict(rig, imx.with_(max_event_rate_hz=0.0), levels=levels)
+    assert np.all(free.bias == 0.0) and free.max_delay_us == 0.0
+    even = predict(rig, imx, levels=levels, uniform_share=0.0)
+    lumped = predict(rig, imx, levels=levels)
+    assert 0.3 < even.readout_load < 0.6  # the mean load, the same in both scenes
+    assert lumped.max_delay_us > even.max_delay_us > 0.0
+    assert np.nanmax(np.abs(lumped.bias)) > MAX_BIAS
+    assert even.run(20.0)[0] >= lumped.run(20.0)[0] + 30.0
+    with pytest.raises(ValueError, match="uniform_share"):
+        predict(rig, imx, levels=levels, uniform_share=1.0)

@@ -57,10 +57,12 @@ from asynhdr.rig import Rig
 from asynhdr.sensor.params import SensorParams
 
 __all__ = [
+    "FLAT_ROI_PIXELS",
     "Calibration",
     "Response",
     "fit_panel_curves",
     "fit_response",
+    "flat_capture_sensor",
     "read_sweep_csv",
     "simulate_sweep",
     "thresholds_from_flats",
@@ -68,6 +70,21 @@ __all__ = [
 ]
 
 logger = logging.getLogger(__name__)
+
+FLAT_ROI_PIXELS = 4096
+"""Flat fields are captured through regions of interest of this many pixels, read one at
+a time. On the whole array every pixel of a flat field fires in the same instant and the
+readout's queue stamps the events late (a 400x180 flat at 30x ``L_const`` waits up to
+4.9 ms at the IMX636's share); a wave of 4,096 events takes 3.8 µs at its 1.066 Gev/s."""
+
+
+def flat_capture_sensor(sensor: SensorParams, n_pixels: int) -> SensorParams:
+    """The sensor as a simulated flat-field capture of ``n_pixels`` pixels sees it: read
+    through regions of interest of :data:`FLAT_ROI_PIXELS` (each region has the whole
+    readout), one simulation for all of them. Unchanged without a shared readout."""
+    if not sensor.array_pixels:
+        return sensor
+    return sensor.with_(name=sensor.name, array_pixels=min(FLAT_ROI_PIXELS, int(n_pixels)))
 
 THRESHOLD_ERROR_FLOOR = 0.002
 """Added in quadrature to calibrated thresholds' stated errors when ``ml`` uses them."""

@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from asynhdr.calib import flat_capture_sensor
 from asynhdr.calibrate import CMap
 from asynhdr.events import Recording
 from asynhdr.experiments import _cmaps_from_flats, finite_image
@@ -110,10 +111,11 @@ def calibrate_for_scenes(*, width: int, height: int, sensor: SensorParams | str,
     lum = rig_mid_radiance(rig) if flat_radiance is None else flat_radiance
     flat = flat_field(width=width, height=height, radiance=lum, unit="lux")
     seeds = np.random.SeedSequence(seed).spawn(n_flat)
+    roi = flat_capture_sensor(sensor, width * height)
 
     def caps() -> Iterator[Recording]:
         for s in seeds:
-            yield simulate(flat, rig=rig, sensor=sensor, n_cycles=flat_cycles,
+            yield simulate(flat, rig=rig, sensor=roi, n_cycles=flat_cycles,
                            rng=np.random.default_rng(s), sensor_seed=sensor_seed,
                            engine=engine)
 
@@ -134,8 +136,9 @@ def calibrate_thresholds_for_scenes(*, width: int, height: int, sensor: SensorPa
     sensor = get_preset(sensor) if isinstance(sensor, str) else sensor
     rads = [rig.l_const * 30.0, rig.l_const / 30.0] * 2
     seeds = np.random.SeedSequence(seed).spawn(len(rads))
+    roi = flat_capture_sensor(sensor, width * height)
     caps = [simulate(flat_field(width=width, height=height, radiance=r, unit="lux"), rig=rig,
-                     sensor=sensor, n_cycles=3, rng=np.random.default_rng(sq),
+                     sensor=roi, n_cycles=3, rng=np.random.default_rng(sq),
                      sensor_seed=sensor_seed, engine=engine) for r, sq in zip(rads, seeds,
                                                                               strict=True)]
     cal = thresholds_from_flats(caps, radiance=rads, rig=rig, sensor=sensor)

@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from asynhdr.calib import flat_capture_sensor
 from asynhdr.calibrate import CMap, cmap_from_levels, cmap_key, warn_nominal
 from asynhdr.events import Recording
 from asynhdr.framecam import (
@@ -332,9 +333,11 @@ def run_chart_experiment(
     flat = flat_field(width=width, height=height,
                       radiance=illuminance_lux * 10.0 ** (-flat_density), unit="lux")
 
+    roi = flat_capture_sensor(sensor, width * height)
+
     def flats() -> Iterator[Recording]:
         for i in range(n_flat):
-            yield simulate(flat, rig=rig, sensor=sensor, n_cycles=flat_cycles,
+            yield simulate(flat, rig=rig, sensor=roi, n_cycles=flat_cycles,
                            rng=np.random.default_rng(seeds[2 + i]),
                            sensor_seed=sensor_seed, engine=engine)
             if progress is not None:
