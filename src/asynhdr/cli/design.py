@@ -27,7 +27,9 @@ def design(
     l_min: float = typer.Option(DEFAULT_SCENE_RANGE[0], help="Darkest scene radiance (lux)."),
     l_max: float = typer.Option(DEFAULT_SCENE_RANGE[1], help="Brightest scene radiance "
                                 "(lux)."),
-    frame_rate_hz: float = typer.Option(DEFAULT_FRAME_RATE_HZ, help="Cycles per second."),
+    frame_rate_hz: float | None = typer.Option(None, help="Cycles per second (default: the "
+                                               "preset's default rig's, asynhdr.design."
+                                               f"DESIGNED; else {DEFAULT_FRAME_RATE_HZ:g})."),
     contrast_ratio: float = typer.Option(1000.0, help="Panels' open/closed ratio."),
     min_snr_db: float = typer.Option(DEFAULT_MIN_SNR_DB, help="Per-pixel SNR a level needs "
                                      "to count in the range."),
@@ -47,11 +49,14 @@ def design(
     it and write the rig file."""
     import numpy as np
 
+    from asynhdr.design import DESIGNED, predict
     from asynhdr.design import design as run
-    from asynhdr.design import predict
     from asynhdr.rig import Rig
     from asynhdr.sensor.params import get_preset
 
+    if frame_rate_hz is None:
+        frame_rate_hz = float(DESIGNED.get(preset, {}).get("frame_rate_hz",
+                                                           DEFAULT_FRAME_RATE_HZ))
     try:
         sensor = get_preset(preset)
         with progress_bar() as update:
