@@ -34,8 +34,10 @@ ends where it began, so there is no return to hide.
 :func:`design` searches ``L_const``, the split ``a``, the end of the reference's ramp ``b``
 and its floor for the longest run of radiance levels whose predicted per-pixel SNR
 (``-20 log10(sigma_ln L)``, ``sigma`` the Cramér-Rao bound of :mod:`asynhdr.ml` on the
-noiseless events of the sensor preset) is at least ``min_snr_db``, over both families;
-the cycle length is the frame rate's period. Between rigs of equal range the sequential
+noiseless events of the sensor preset) is at least ``min_snr_db`` and whose estimate the
+readout's queue biases by at most :data:`MAX_BIAS` (:func:`predict`: the array's share of
+the readout, with a quarter of the array at one radiance), over both families; the cycle
+length is the frame rate's period. Between rigs of equal range the sequential
 one is kept, and between two of one family the higher mean SNR over the run: the round
 trip doubles the events of every cycle (the readout's load and ``ml``'s time), and the
 paper's weightings and c-map lose their meaning on it (its net swing over the cycle is
@@ -62,6 +64,7 @@ __all__ = [
     "FAMILIES",
     "MAX_BIAS",
     "SPLITS",
+    "UNIFORM_SHARE",
     "DesignResult",
     "Prediction",
     "default_rig",
@@ -230,11 +233,12 @@ class Prediction:
     snr_db : per-pixel SNR (dB): ``-20 log10`` of the median Cramér-Rao bound on ``ln L``
         over the level's pixels; ``-inf`` where they fire fewer than two events.
     bias : ``ml``'s median error in ``ln L`` on the same noiseless events after the
-        readout's queue (0 where the readout keeps up); NaN where it gives no estimate.
+        readout's queue, the larger of the two scenes of :func:`predict` (0 where the
+        readout keeps up); NaN where it gives no estimate.
     events_per_cycle : events per pixel and cycle, the mean over the levels.
     readout_load : the array's mean event rate over the cycle as a fraction of its
         readout (0: no limit), with the levels spread evenly over the array.
-    max_delay_us : the longest the readout's queue held an event.
+    max_delay_us : the longest the readout's queue held an event (either scene).
     """
 
     levels: np.ndarray

@@ -45,8 +45,8 @@ def design(
     """Choose the rig family (sequential, or round trip: there and back in one cycle),
     L_const and the ramps' split that maximise the range over which ml's predicted
     per-pixel SNR (the model's Cramér-Rao bound) is at least --min-snr-db and the
-    readout's queue (at the sensor's full array) moves ml's estimate by at most 5 %; print
-    it and write the rig file."""
+    readout's queue (the whole array's, a quarter of it at one radiance) moves ml's
+    estimate by at most 5 %; print it and write the rig file."""
     import numpy as np
 
     from asynhdr.design import DESIGNED, predict
