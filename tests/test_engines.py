@@ -84,8 +84,8 @@ def compare_with_reference(rig: Rig, sensor: SensorParams, engine: str, ref: lis
 def test_engines_match_fine_step_integration(preset: str, lowpass: bool) -> None:
     # the pixels alone: their region read alone, so the readout (after the pixel, not in
     # the reference) keeps up
-    sensor = get_preset(preset).with_(name=preset, array_pixels=0,
-                                      cutoff_hz=IMX636_CUTOFF_HZ if lowpass else 0.0)
+    sensor = get_preset(preset).region_of_interest().with_(
+        name=preset, cutoff_hz=IMX636_CUTOFF_HZ if lowpass else 0.0)
     rig = Rig()
     ref = reference_events(RADIANCE, rig, sensor, n_cycles=2, seed=5, sensor_seed=9)
     assert sum(r[0].size for r in ref) > 2000
@@ -97,7 +97,7 @@ def test_engines_match_fine_step_integration(preset: str, lowpass: bool) -> None
 
 @pytest.mark.parametrize("panel", ["tn", "fast_shutter"])
 def test_engines_match_fine_step_integration_through_real_panels(panel: str) -> None:
-    sensor = get_preset("imx636").with_(name="imx636", array_pixels=0)
+    sensor = get_preset("imx636").region_of_interest()
     rig = Rig(panel=panel)
     ref = reference_events(RADIANCE, rig, sensor, n_cycles=2, seed=5, sensor_seed=9)
     for engine in ENGINES:
@@ -117,7 +117,7 @@ def test_engines_agree_on_a_chart_and_obey_the_refractory_period() -> None:
     # the pixels' own timestamps: read alone, as a region of interest the readout keeps up
     # with (a queue stamps events late by different amounts and can bring two of a pixel
     # closer than its refractory period, docs/sensor.md)
-    sensor = get_preset("imx636").with_(name="imx636", array_pixels=0)
+    sensor = get_preset("imx636").region_of_interest()
     recs = {e: simulate(chart, sensor=sensor, n_cycles=n_cycles, rng=0, sensor_seed=1,
                         engine=e) for e in ENGINES}
     npix = 80 * 60

@@ -19,7 +19,7 @@ from asynhdr.simulate import draw_thresholds, simulate
 QUIET = dict(leak_rate_hz=0.0, shot_noise_rate_hz=0.0, hot_pixel_fraction=0.0,
              dead_pixel_fraction=0.0)
 
-IMX636 = get_preset("imx636").with_(name="imx636", array_pixels=0)
+IMX636 = get_preset("imx636").region_of_interest()
 """The IMX636 pixel, its region read alone: these few pixels never queue at the readout,
 whose delays are not in ml's model (benchmarks/bench_ml.py measures the whole array's)."""
 

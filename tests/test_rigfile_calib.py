@@ -76,7 +76,7 @@ def test_thresholds_from_flats_recover_simulated_thresholds(caplog) -> None:
     # of the pixels within three stated errors
     rig = default_rig("imx636")
     sensor = get_preset("imx636")
-    roi = sensor.with_(name="imx636", array_pixels=0)
+    roi = sensor.region_of_interest()
     w, h = 24, 16
     rads = [rig.l_const * 30, rig.l_const / 30] * 2
     caps = [simulate(flat_field(width=w, height=h, radiance=r), rig=rig, sensor=roi,

@@ -144,7 +144,10 @@ def test_readout_share_keeps_the_per_pixel_load(n_pixels: int) -> None:
     assert st.max_delay_us == pytest.approx((n_pixels - 1) * service)
     assert int(out["t"][-1]) == math.floor((n_pixels - 1) * service)
     # without the share (a region read alone) the same burst clears n times faster
-    alone = SensorParams(max_event_rate_hz=1e6)
+    alone = sensor.region_of_interest()
+    assert alone.readout(n_pixels) == (1e6, 1024.0)
+    # regions of 10 pixels: n / 10 of them, each with the whole readout
+    assert sensor.region_of_interest(10).readout(n_pixels)[0] == pytest.approx(1e6 * n_pixels / 10)
     _, st1 = apply_arbiter(_burst(n_pixels, 0), alone, n_pixels=n_pixels)
     assert st1.max_delay_us == pytest.approx(n_pixels - 1)
 

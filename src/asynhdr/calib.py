@@ -82,9 +82,7 @@ def flat_capture_sensor(sensor: SensorParams, n_pixels: int) -> SensorParams:
     """The sensor as a simulated flat-field capture of ``n_pixels`` pixels sees it: read
     through regions of interest of :data:`FLAT_ROI_PIXELS` (each region has the whole
     readout), one simulation for all of them. Unchanged without a shared readout."""
-    if not sensor.array_pixels:
-        return sensor
-    return sensor.with_(name=sensor.name, array_pixels=min(FLAT_ROI_PIXELS, int(n_pixels)))
+    return sensor.region_of_interest(min(FLAT_ROI_PIXELS, int(n_pixels)))
 
 THRESHOLD_ERROR_FLOOR = 0.002
 """Added in quadrature to calibrated thresholds' stated errors when ``ml`` uses them."""

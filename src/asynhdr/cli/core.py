@@ -392,7 +392,7 @@ def simulate(
         rig = _simulate_rig(preset, rig_file, period_us=period_us, ramp_fraction=ramp_fraction,
                             t1_shape=t1_shape, t2_shape=t2_shape, l_const=l_const,
                             panel=panel, pre_emphasis=pre_emphasis)
-        seen = sensor.with_(name=sensor.name, array_pixels=0) if roi else sensor
+        seen = sensor.region_of_interest() if roi else sensor
         if scale is not None and not (scale > 0 and math.isfinite(scale)):
             fail(f"--scale must be a positive number, got {scale}")
         sc = _scene_from_spec(scene, width, height, scale,

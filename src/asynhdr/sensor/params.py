@@ -133,6 +133,15 @@ class SensorParams:
         return (self.max_event_rate_hz * share,
                 max(1.0, self.arbiter_buffer_events * share))
 
+    def region_of_interest(self, pixels: int | None = None) -> SensorParams:
+        """The sensor read through regions of interest, each with the whole readout:
+        regions of ``pixels`` pixels (a simulation of more pixels stands for several
+        regions read one after the other), or, with None, the simulated pixels read
+        alone. Unchanged without a shared readout (``array_pixels`` 0)."""
+        if not self.array_pixels:
+            return self
+        return replace(self, array_pixels=0 if pixels is None else max(1, int(pixels)))
+
     @property
     def tau_ref_us(self) -> float:
         """Photoreceptor time constant at ``cutoff_irradiance`` (µs); 0 when disabled."""
