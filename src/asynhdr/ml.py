@@ -148,6 +148,10 @@ class MlModel:
     split_us : the slot where that net change tells ``g`` best (its spread over ``g`` is
         largest): the end of the window for a one-way rig, the turn of a round trip, after
         which the net change falls back. The start uses the events before it.
+    split2_us, net_v2 : the same at the end of the first stretch of slots whose spread is
+        within 1 % of the largest: ``split_us`` for one trip; for two, the first trip's
+        turn, where the net change counts half the events (its error from the thresholds'
+        mismatch is half as large). A fit starts from the better of the two.
     """
 
     window_us: int
@@ -169,6 +173,8 @@ class MlModel:
     net_g: np.ndarray
     net_v: np.ndarray
     split_us: int
+    split2_us: int
+    net_v2: np.ndarray
     description: str = ""
 
     @property
@@ -182,13 +188,25 @@ def _noise_rate_hz(sensor: SensorParams) -> float:
     return float(sensor.leak_rate_hz + shot)
 
 
-def _split(net: np.ndarray) -> int:
-    """Index (along axis 1 of ``net``, the net change of ``V`` per ``g`` row and time) of
-    the last time whose spread over ``g`` is within 0.1 % of the largest; -1 when that is
-    the last time given."""
+def _split(net: np.ndarray) -> tuple[int, int]:
+    """Indices (along axis 1 of ``net``, the net change of ``V`` per ``g`` row and time) of
+    the last time whose spread over ``g`` is within 0.1 % of the largest, and of the same
+    within the first stretch of times within 1 % of the largest; -1 for the last time
+    given."""
     spread = net.max(axis=0) - net.min(axis=0)
     i = int(np.flatnonzero(spread >= 0.999 * spread.max())[-1])
-    return -1 if i == spread.size - 1 else i
+    near = spread >= 0.99 * spread.max()
+    i0 = int(np.argmax(near))
+    i1 = i0
+    while i1 + 1 < spread.size and near[i1 + 1]:
+        i1 += 1
+    part = spread[i0:i1 + 1]
+    if i <= i1:
+        j = i  # one stretch: the same time
+    else:
+        j = i0 + int(np.flatnonzero(part >= 0.999 * part.max())[-1])
+    last = spread.size - 1
+    return (-1 if i == last else i), (-1 if j == last else j)
 
 
 _SPLIT_TIMES = 2048
@@ -258,13 +276,17 @@ def ml_model(rig: Rig, sensor: SensorParams, *, window_us: float | None = None,
         slots = np.unique(np.append(np.arange(0, w_us, max(1, w_us // _SPLIT_TIMES)),
                                     w_us - 1))
         ec = e[::8, None]
-        i = _split(np.log(exact[0, slots] * ec + exact[1, slots]) - np.log(v0[0] * ec + v0[1]))
-        m_s = int(slots[i])
-        nv = np.log(exact[0, m_s] * e + exact[1, m_s]) - np.log(v0[0] * e + v0[1])
+        ii = _split(np.log(exact[0, slots] * ec + exact[1, slots])
+                    - np.log(v0[0] * ec + v0[1]))
+        nvs = []
+        for i in ii:
+            m_s = int(slots[i])
+            nv = np.log(exact[0, m_s] * e + exact[1, m_s]) - np.log(v0[0] * e + v0[1])
+            nvs.append((_rising(nv), w_us if i < 0 else m_s + 1))
         return MlModel(mode=0, rows=np.zeros((2, 2, 2), np.float32), g0=g_lo, dlog=1.0,
                        locate=np.zeros((4, 1)), inv_h=np.zeros(1), net_g=ng,
-                       net_v=_rising(nv), split_us=w_us if i < 0 else m_s + 1,
-                       description="exact log irradiance",
+                       net_v=nvs[0][0], split_us=nvs[0][1], net_v2=nvs[1][0],
+                       split2_us=nvs[1][1], description="exact log irradiance",
                        **common)  # type: ignore[arg-type]
     if not (dlog > 0 and math.isfinite(dlog)):
         raise ValueError(f"ml: dlog must be positive, got {dlog}")
@@ -300,18 +322,21 @@ def ml_model(rig: Rig, sensor: SensorParams, *, window_us: float | None = None,
     tab[:-1, :, 1] = np.diff(rows, axis=1).T
     tab[-1, :, 1] = 0.0
     k_end = int(kc[-1])
-    nv = (rows[:, k_end] + fc[-1] * (rows[:, k_end + 1] - rows[:, k_end])) - rows[:, 0]
+    nv_end = (rows[:, k_end] + fc[-1] * (rows[:, k_end + 1] - rows[:, k_end])) - rows[:, 0]
     ks = np.unique(np.append(np.arange(0, k_end + 1, max(1, (k_end + 1) // _SPLIT_TIMES)),
                              k_end))
-    i = _split(rows[::8, ks] - rows[::8, :1])
-    m_split = w_us
-    if i >= 0:
-        nv = rows[:, ks[i]] - rows[:, 0]
-        m_split = max(1, min(int(np.searchsorted(tc, s[ks[i]], side="right")), w_us))
+    nvs = []
+    for i in _split(rows[::8, ks] - rows[::8, :1]):
+        nv = nv_end
+        m_split = w_us
+        if i >= 0:
+            nv = rows[:, ks[i]] - rows[:, 0]
+            m_split = max(1, min(int(np.searchsorted(tc, s[ks[i]], side="right")), w_us))
+        nvs.append((_rising(nv), m_split))
     return MlModel(mode=1, rows=tab, g0=g_lo, dlog=float(dlog),
                    locate=np.stack([kc, fc, ke, fe]), inv_h=1.0 / np.diff(s),
-                   net_g=g_lo + dlog * np.arange(n_rows), net_v=_rising(nv),
-                   split_us=m_split,
+                   net_g=g_lo + dlog * np.arange(n_rows), net_v=nvs[0][0],
+                   split_us=nvs[0][1], net_v2=nvs[1][0], split2_us=nvs[1][1],
                    description=f"photoreceptor low-pass tabulated ({n_rows} radiances x "
                    f"{s.size} times)", **common)  # type: ignore[arg-type]
 
@@ -360,6 +385,24 @@ def _eval(mode, j, w, e, m, end, exact, v0a, v0b, rows, dlog, locate, inv_h):
     va = rows[k, j, 0] + f * da
     vb = rows[k, j + 1, 0] + f * db
     return va + w * (vb - va), (vb - va) / dlog, (da + w * (db - da)) * inv_h[k]
+
+
+@nb.njit(cache=True, inline="always")
+def _slope_g(mode, j, w, e, m, exact, rows, dlog, locate, inv_h):
+    """``d(dV/dt)/dg`` at the crossing time of whole µs slot ``m`` (``m >= 0``), for the
+    ``g`` that :func:`_at_g` gave ``(j, w, e)``."""
+    if mode == 0:
+        a = exact[0, m]
+        b = exact[1, m]
+        irr = a * e + b
+        return e * (exact[2, m] * b - exact[3, m] * a) / (irr * irr)
+    k = int(locate[0, m])
+    return (rows[k, j + 1, 1] - rows[k, j, 1]) * inv_h[k] / dlog
+
+
+_JACOBIAN_MAX = 10.0
+"""Bound on ``|d ln|dV/dt| / dg|`` per event in the fit's gradient (near a turn of ``V``,
+where ``dV/dt`` passes zero, the term is large and means little)."""
 
 
 @nb.njit(cache=True)
@@ -525,6 +568,14 @@ def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exac
             var = sr2 * k_ev + dtc * dtc * tq2 + has_u * first_var
         if var < 1e-12:
             var = 1e-12
+        # the event is a time: its density is phi(r / s) |dV/dt| / s, so the likelihood's
+        # gradient in g has, besides the residual's, d ln|dV/dt| / dg (what least squares
+        # on the levels leaves out; without it the fit is biased by about the reset
+        # noise's variance)
+        jac = 0.0
+        if dtc != 0.0:
+            jac = _slope_g(mode, jg, wg, eg, m, exact, rows, dlog, locate, inv_h) / dtc
+            jac = min(max(jac, -_JACOBIAN_MAX), _JACOBIAN_MAX)
         w = 1.0 / var
         z2 = r * r * w
         z_sum += z2
@@ -539,6 +590,7 @@ def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exac
             if lam > 0.0:
                 gam = f / (f + lam)
                 w *= gam
+                jac *= gam
                 n_signal += gam
             else:
                 n_signal += 1.0
@@ -546,7 +598,7 @@ def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exac
             n_signal += 1.0
         wr = w * r
         chi2 += wr * r
-        b0 -= wr * j0
+        b0 += jac - wr * j0
         b1 -= wr * j1
         b2 -= wr * j2
         b3 -= wr * j3
@@ -917,7 +969,8 @@ def _held_thresholds(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a
 @nb.njit(cache=True)
 def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
                dlog, locate, inv_h, wmax, g_lo, g_hi, net_g, net_v, c1, c2, s1, s2, gp, sgp,
-               fixed, h, bvec, x, lmat, wy, wz, out, u_sd, stat, res, scan, split, st_o):
+               fixed, h, bvec, x, lmat, wy, wz, out, u_sd, stat, res, scan, split, st_o,
+               net_v2, split2):
     """One pixel (module docstring). Writes ``(g, sd, c_on, c_off, flag)`` into ``out``.
     ``u_sd > 0``: the pixel starts settled at its reference (``u ~ N(0, u_sd^2)``).
     ``stat`` (5), ``st_o`` (5), ``res`` (6) and ``scan`` (:func:`_profile_scan`) are work
@@ -968,6 +1021,34 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
             g = _start(lo, hi, t, p, mode, dead, exact, v0a, v0b, rows, g0, dlog, locate,
                        inv_h, wmax, g_lo, g_hi, net_g, net_v, c1, c2, mu_u, skip, skip2,
                        split)
+            if attempt == 0 and split2 != split:
+                # two trips: the start from the first turn too; the one whose fit is
+                # likelier
+                g2 = _start(lo, hi, t, p, mode, dead, exact, v0a, v0b, rows, g0, dlog,
+                            locate, inv_h, wmax, g_lo, g_hi, net_g, net_v2, c1, c2, mu_u,
+                            skip, skip2, split2)
+                if abs(g2 - g) > 0.02:
+                    o_a = np.inf
+                    v_a = np.inf
+                    for k in range(2):
+                        gk = g if k == 0 else g2
+                        _gauss_newton(gk, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact,
+                                      v0a, v0b, rows, g0, dlog, locate, inv_h, wmax, g_lo,
+                                      g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp,
+                                      np.int64(_MAX_ITER), skip, skip2, h, bvec, x, lmat, wy,
+                                      wz, stat, res)
+                        _held_thresholds(gk, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam,
+                                         exact, v0a, v0b, rows, g0, dlog, locate, inv_h, wmax,
+                                         g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp, skip,
+                                         skip2, h, bvec, x, lmat, wy, wz, stat, res, st_o)
+                        o_k = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact,
+                                       v0a, v0b, rows, g0, dlog, locate, inv_h, wmax, c1, c2,
+                                       s1, s2, su, mu_u, skip, skip2, h, bvec, st_o)
+                        if k == 0:
+                            o_a = o_k
+                            v_a = res[1]
+                        elif _preferred(o_k, res[1], o_a, v_a):
+                            g = g2
         _gauss_newton(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
                       g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp,
                       sgp, np.int64(_MAX_ITER), skip, skip2, h, bvec, x, lmat, wy, wz, stat, res)
@@ -1063,7 +1144,7 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
 def _estimate_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
                      dlog, locate, inv_h, wmax, g_lo, g_hi, net_g, net_v, min_events, con0,
                      coff0, scon, scoff, g_prior, sg_prior, fixed, out_g, out_sd, out_con,
-                     out_coff, out_flag, u_sd, split):
+                     out_coff, out_flag, u_sd, split, net_v2, split2):
     """Fit every pixel (module docstring), in blocks of ``_BLOCK`` per thread. ``fixed``:
     evaluate the information at ``g_prior`` with no fit (the bound); ``sg_prior > 0``: a
     Gaussian prior on ``g``."""
@@ -1095,7 +1176,7 @@ def _estimate_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
                        g0, dlog, locate, inv_h, wmax, g_lo, g_hi, net_g, net_v, con0[px],
                        coff0[px], max(scon[px], 1e-6), max(scoff[px], 1e-6), g_prior[px],
                        sg_prior[px], fixed, h, bvec, x, lmat, wy, wz, res, u_sd, stat, work,
-                       scan, split, st_o)
+                       scan, split, st_o, net_v2, split2)
             out_g[px] = res[0]
             out_sd[px] = res[1]
             out_con[px] = res[2]
@@ -1226,7 +1307,7 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
                      np.ascontiguousarray(con), np.ascontiguousarray(coff),
                      np.ascontiguousarray(scon), np.ascontiguousarray(scoff), gp, sp, fixed,
                      out_g, out_sd, out_con, out_coff, out_flag, float(start_sigma),
-                     np.int64(model.split_us))
+                     np.int64(model.split_us), model.net_v2, np.int64(model.split2_us))
     return out_g, out_sd, out_con, out_coff, out_flag, counts
 
 
