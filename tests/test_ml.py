@@ -201,6 +201,19 @@ def test_round_trip_rig_crosses_twice_and_ends_where_it_began() -> None:
     assert counts.min() >= 12, counts
 
 
+def test_two_round_trips_cross_four_times_and_end_where_they_began() -> None:
+    rig = round_trip_rig(period_us=50_000, l_const=100.0, a=0.1, b=0.225, trips=2)
+    for w in rig.target_waveforms():
+        assert float(w(np.array([0.0]))[0]) == pytest.approx(float(w(np.array([1.0]))[0]))
+        # the second trip is the first, shifted by 2 b
+        u = np.linspace(0.0, 0.45, 101)
+        assert np.allclose(w(u + 0.45), w(u))
+    levels = np.geomspace(0.1, 1e5, 13)
+    rec = simulate(_scene(levels, 1), rig=rig, sensor="ideal", n_cycles=1, rng=0)
+    counts = np.bincount(rec.events["y"], minlength=levels.size)
+    assert counts.min() >= 24, counts
+
+
 def test_cli_simulate_rig_out_then_reconstruct_ml_with_rig(tmp_path) -> None:
     # a recording file that does not keep the rig (EVT 3.0) reconstructs with --rig
     from typer.testing import CliRunner

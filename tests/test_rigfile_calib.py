@@ -170,7 +170,8 @@ def test_designed_defaults_and_prediction() -> None:
 
 def test_design_families() -> None:
     # every designed default names a family design() knows, and builds; an unknown family
-    # is refused before anything is simulated; a round trip needs room for both halves
+    # is refused before anything is simulated; a round trip needs room for both halves,
+    # two round trips for four
     from asynhdr.design import FAMILIES, design, round_trip_rig
 
     for preset, p in DESIGNED.items():
@@ -178,8 +179,31 @@ def test_design_families() -> None:
         assert default_rig(preset).period_us == round(1e6 / p["frame_rate_hz"])
     with pytest.raises(ValueError, match="unknown rig families"):
         design("ideal", families=("zigzag",))
-    with pytest.raises(ValueError, match="2 b <= ramp_fraction"):
+    with pytest.raises(ValueError, match="2 b trips <= ramp_fraction"):
         round_trip_rig(period_us=50_000, l_const=100.0, a=0.2, b=0.5)
+    with pytest.raises(ValueError, match="2 b trips <= ramp_fraction"):
+        round_trip_rig(period_us=50_000, l_const=100.0, a=0.1, b=0.25, trips=2)
+    with pytest.raises(ValueError, match="trips must be a whole number"):
+        round_trip_rig(period_us=50_000, l_const=100.0, a=0.1, b=0.2, trips=0)
+
+
+def test_design_ranks_range_then_the_simplest_rig_at_the_mean_snr() -> None:
+    from asynhdr.design import _preference
+
+    def best(*cands: tuple[float, float, int]) -> int:
+        keys = [_preference(db, m, rank, 30.0) for db, m, rank in cands]
+        return keys.index(max(keys))
+
+    # the wider range wins, whatever its SNR and family
+    assert best((115.0, 35.0, 0), (120.0, 26.0, 2)) == 1
+    # equal ranges: of those at >= 30 dB, the simplest family
+    assert best((120.0, 26.5, 0), (120.0, 31.3, 2), (120.0, 32.0, 1)) == 2
+    # equal ranges, none at 30 dB: the higher mean SNR, whatever the family
+    assert best((120.0, 26.5, 0), (120.0, 28.8, 1)) == 1
+    # both at 30 dB: the sequential rig, though the round trip is better
+    assert best((130.0, 74.2, 0), (130.0, 77.0, 1)) == 0
+    # one family: the higher mean SNR
+    assert best((130.0, 74.2, 0), (130.0, 75.0, 0)) == 1
 
 
 def test_thresholds_from_results_weights_by_events() -> None:

@@ -12,8 +12,10 @@ from asynhdr.cli._app import app
 from asynhdr.cli.core import console, fail, progress_bar
 from asynhdr.design import (
     DEFAULT_FRAME_RATE_HZ,
+    DEFAULT_MEAN_SNR_DB,
     DEFAULT_MIN_SNR_DB,
     DEFAULT_SCENE_RANGE,
+    FAMILIES,
     MAX_BIAS,
 )
 
@@ -33,20 +35,24 @@ def design(
     contrast_ratio: float = typer.Option(1000.0, help="Panels' open/closed ratio."),
     min_snr_db: float = typer.Option(DEFAULT_MIN_SNR_DB, help="Per-pixel SNR a level needs "
                                      "to count in the range."),
-    family: list[str] = typer.Option(["sequential", "round_trip"], "--family",
-                                     help="Rig families to search (repeatable): sequential "
-                                     "| round_trip."),
+    mean_snr_db: float = typer.Option(DEFAULT_MEAN_SNR_DB, help="Mean per-pixel SNR over "
+                                      "the range that settles a tie of ranges: the rig with "
+                                      "the fewest events that reaches it wins."),
+    family: list[str] = typer.Option(list(FAMILIES), "--family",
+                                     help="Rig families to search (repeatable): "
+                                     + " | ".join(FAMILIES) + "."),
     out: Path | None = typer.Option(None, "--out", "-o", help="Rig file to write (.toml)."),
     compare: bool = typer.Option(False, "--compare", help="Also predict the paper's rig "
                                  "(linear ramps, t2_stop 0.5, L_const 10 lux) and a "
                                  "cross-fade (both exponential, T2 to its floor)."),
     json_out: Path | None = typer.Option(None, "--json", help="Write every figure as JSON."),
 ) -> None:
-    """Choose the rig family (sequential, or round trip: there and back in one cycle),
-    L_const and the ramps' split that maximise the range over which ml's predicted
+    """Choose the rig family (sequential, or round trips: there and back, once or twice per
+    cycle), L_const and the ramps' split that maximise the range over which ml's predicted
     per-pixel SNR (the model's Cramér-Rao bound) is at least --min-snr-db and the
     readout's queue (the whole array's, a quarter of it at one radiance) moves ml's
-    estimate by at most 5 %; print it and write the rig file."""
+    estimate by at most 5 %; between equal ranges, the rig with the fewest events whose
+    mean SNR reaches --mean-snr-db. Print it and write the rig file."""
     import numpy as np
 
     from asynhdr.design import DESIGNED, predict
@@ -62,7 +68,7 @@ def design(
         with progress_bar() as update:
             res = run(sensor, l_min=l_min, l_max=l_max, frame_rate_hz=frame_rate_hz,
                       contrast_ratio=contrast_ratio, min_snr_db=min_snr_db,
-                      families=tuple(family),
+                      mean_snr_db=mean_snr_db, families=tuple(family),
                       progress=lambda d, t: update("candidates", d, t))
     except ValueError as exc:
         fail(str(exc))
@@ -92,10 +98,12 @@ def design(
         table.add_row(f"{lv:.3g}", *[f"{rows[n][i]:.1f}" for n in rows])
     console.print(table)
     back = ""
-    if p["family"] == "round_trip":
+    if p["family"] in ("round_trip", "two_round_trips"):
         c = 2.0 * p["b"] - p["a"]
         back = (f", reopens over {p['b']:.2f}..{c:.2f}, scene panel closes over "
                 f"{c:.2f}..{2.0 * p['b']:.2f}")
+        if p["family"] == "two_round_trips":
+            back += f"; again over {2.0 * p['b']:.2f}..{4.0 * p['b']:.2f}"
     console.print(f"design ({p['family']}): L_const {p['l_const']:.4g} lux; scene panel opens "
                   f"over phase 0..{p['a']:.2f}, reference closes over "
                   f"{p['a']:.2f}..{p['b']:.2f} to {p['floor_2']:g}{back}, hold to "
@@ -127,7 +135,8 @@ def design(
                       made={"by": "asynhdr design", "asynhdr_version": __version__,
                             "preset": preset, "l_min": l_min, "l_max": l_max,
                             "frame_rate_hz": frame_rate_hz, "contrast_ratio": contrast_ratio,
-                            "min_snr_db": min_snr_db, "predicted_range_db": res.range_db,
+                            "min_snr_db": min_snr_db, "mean_snr_db": mean_snr_db,
+                            "predicted_range_db": res.range_db,
                             **{k: v for k, v in p.items()}})
         except (ValueError, OSError) as exc:
             fail(str(exc))
