@@ -1010,6 +1010,8 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
     cand = 0
     collapsed = False
     attempt = 0
+    g_other = np.nan  # a second start (two trips), fitted beside the first
+    saved = np.empty(11)
     while attempt < n_try:
         if attempt > 0:
             if collapsed:
@@ -1022,39 +1024,44 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
                        inv_h, wmax, g_lo, g_hi, net_g, net_v, c1, c2, mu_u, skip, skip2,
                        split)
             if attempt == 0 and split2 != split:
-                # two trips: the start from the first turn too; the one whose fit is
-                # likelier
+                # two trips: the start from the first turn too; the fit that is likelier
                 g2 = _start(lo, hi, t, p, mode, dead, exact, v0a, v0b, rows, g0, dlog,
                             locate, inv_h, wmax, g_lo, g_hi, net_g, net_v2, c1, c2, mu_u,
                             skip, skip2, split2)
                 if abs(g2 - g) > 0.02:
-                    o_a = np.inf
-                    v_a = np.inf
-                    for k in range(2):
-                        gk = g if k == 0 else g2
-                        _gauss_newton(gk, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact,
-                                      v0a, v0b, rows, g0, dlog, locate, inv_h, wmax, g_lo,
-                                      g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp,
-                                      np.int64(_MAX_ITER), skip, skip2, h, bvec, x, lmat, wy,
-                                      wz, stat, res)
-                        _held_thresholds(gk, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam,
-                                         exact, v0a, v0b, rows, g0, dlog, locate, inv_h, wmax,
-                                         g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp, skip,
-                                         skip2, h, bvec, x, lmat, wy, wz, stat, res, st_o)
-                        o_k = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact,
-                                       v0a, v0b, rows, g0, dlog, locate, inv_h, wmax, c1, c2,
-                                       s1, s2, su, mu_u, skip, skip2, h, bvec, st_o)
-                        if k == 0:
-                            o_a = o_k
-                            v_a = res[1]
-                        elif _preferred(o_k, res[1], o_a, v_a):
-                            g = g2
+                    g_other = g2
+        if g_other == g_other:
+            _gauss_newton(g_other, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
+                          v0b, rows, g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, s1,
+                          s2, su, mu_u, gp, sgp, np.int64(_MAX_ITER), skip, skip2, h, bvec, x,
+                          lmat, wy, wz, stat, res)
+            _held_thresholds(g_other, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact,
+                             v0a, v0b, rows, g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2,
+                             s1, s2, su, mu_u, gp, sgp, skip, skip2, h, bvec, x, lmat, wy, wz,
+                             stat, res, st_o)
+            o_other = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
+                               v0b, rows, g0, dlog, locate, inv_h, wmax, c1, c2, s1, s2, su,
+                               mu_u, skip, skip2, h, bvec, st_o)
+            for c in range(6):
+                saved[c] = res[c]
+            for c in range(5):
+                saved[6 + c] = stat[c]
         _gauss_newton(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
                       g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp,
                       sgp, np.int64(_MAX_ITER), skip, skip2, h, bvec, x, lmat, wy, wz, stat, res)
         _held_thresholds(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
                          rows, g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, s1, s2, su,
                          mu_u, gp, sgp, skip, skip2, h, bvec, x, lmat, wy, wz, stat, res, st_o)
+        if g_other == g_other:
+            o_this = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
+                              v0b, rows, g0, dlog, locate, inv_h, wmax, c1, c2, s1, s2, su,
+                              mu_u, skip, skip2, h, bvec, st_o)
+            if _preferred(o_other, saved[1], o_this, res[1]):
+                for c in range(6):
+                    res[c] = saved[c]
+                for c in range(5):
+                    stat[c] = saved[6 + c]
+            g_other = np.nan
         n_bg = (1 if skip >= 0 else 0) + (1 if skip2 >= 0 else 0)
         n_eq = n - n_bg
         obj = np.inf
