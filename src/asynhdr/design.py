@@ -470,11 +470,11 @@ DESIGNED: dict[str, dict[str, Any]] = {
               "b": 0.9, "frame_rate_hz": 20.0},  # 130 dB, 74.2 dB (no readout limit)
     "v2e": {"family": "sequential", "l_const": 452.8253292719891, "a": 0.35,
             "b": 0.9, "frame_rate_hz": 20.0},  # 130 dB, 73.7 dB (no readout limit)
-    # 12 Mev/s for 346x260 pixels: at 20 cycles/s 0 dB, at 5 cycles/s 5 dB
-    "davis346": {"family": "sequential", "l_const": 1196.6450696489756, "a": 0.35,
-                 "b": 0.9, "frame_rate_hz": 2.0},  # 105 dB, 26.3 dB
-    # 1.066 Gev/s for 1280x720 pixels: at 20 cycles/s 90 dB (sequential, L_const 1945,
-    # a 0.25, b 0.65). At 5 cycles/s the sequential rig and the round trip reach 120 dB
+    # 12 Mev/s for 346x260 pixels: at 20 cycles/s 0 dB, at 5 cycles/s 0 dB
+    "davis346": {"family": "sequential", "l_const": 1945.2824912854148, "a": 0.3,
+                 "b": 0.8, "frame_rate_hz": 2.0},  # 85 dB, 26.5 dB
+    # 1.066 Gev/s for 1280x720 pixels: at 20 cycles/s 95 dB (sequential, L_const 1945,
+    # a 0.2, b 0.55). At 5 cycles/s the sequential rig and the round trip reach 120 dB
     # too, at 26.5 and 28.8 dB mean SNR
     "imx636": {"family": "two_round_trips", "l_const": 105.40925533894597, "a": 0.075,
                "b": 0.225, "frame_rate_hz": 5.0},  # 120 dB, 31.3 dB
