@@ -140,7 +140,7 @@ def test_reset_noise_does_not_bias_the_estimate() -> None:
     sensor = get_preset("davis346").with_(
         name="davis-reset", max_event_rate_hz=0.0, jitter_sigma_us=0.0,
         reset_noise_sigma=0.02, **QUIET)
-    n, level = 300, 3.0e4
+    n, level = 120, 3.0e4
     c_on, c_off = draw_thresholds(sensor, width=n, height=1, rng=np.random.default_rng(5))
     rec = simulate(np.full((1, n), level), rig=rig, sensor=sensor, n_cycles=2, rng=3,
                    thresholds=(c_on, c_off))
