@@ -260,6 +260,7 @@ def test_cli_simulate_rig_out_then_reconstruct_ml_with_rig(tmp_path) -> None:
     r = runner.invoke(app, ["reconstruct", str(rec), "-o", str(out), "--method", "ml",
                             "--rig", str(rig), "--formats", "exr"])
     assert r.exit_code == 0, r.output
+    assert "no --calibration" not in r.output  # the ideal pixel has no mismatch to fit
     img = read_image(out / "flat_ml_0001.exr")
     sig = read_image(out / "flat_ml_0001_sigma.exr")
     assert (out / "flat_ml_0001_valid.png").is_file()

@@ -286,8 +286,14 @@ def test_cli_calibrate_thresholds_then_reconstruct_with_calibration(tmp_path: Pa
     res = runner.invoke(app, ["reconstruct", str(scene), "-o", str(tmp_path / "img"),
                               "--method", "ml", "--calibration", str(cal), "--formats", "exr"])
     assert res.exit_code == 0, res.output
+    assert "no --calibration" not in res.output
     img = read_image(tmp_path / "img" / "scene_ml_0001.exr")
     assert abs(float(np.nanmedian(img)) / 2000.0 - 1.0) < 0.03
+    # without it, ml says what it did and what calibration would add
+    res = runner.invoke(app, ["reconstruct", str(scene), "-o", str(tmp_path / "img0"),
+                              "--method", "ml", "--formats", "exr"])
+    assert res.exit_code == 0, res.output
+    assert "no --calibration" in res.output and "mismatch 0.05" in res.output
 
 
 def test_design_prediction_counts_the_readout_queue() -> None:

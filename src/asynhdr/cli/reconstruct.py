@@ -158,6 +158,16 @@ def reconstruct(
                  "to RGB")
     console.print(f"{written} image{'s' if written != 1 else ''} ({method}) from "
                   f"{plan.n_events:,} events, one cycle at a time -> {out}/{note}")
+    if method == "ml" and calibration is None:
+        from asynhdr.ml import sensor_of
+
+        sensor = mlo.sensor or sensor_of(plan.metadata)
+        if sensor.threshold_sigma > 0:
+            console.print(f"ml: no --calibration, so every pixel's thresholds were fitted "
+                          f"from its own events around the nominal {sensor.threshold_on:.3g} "
+                          f"/ {sensor.threshold_off:.3g} (mismatch {sensor.threshold_sigma:g});"
+                          " thresholds calibrated from flat fields (asynhdr "
+                          "calibrate-thresholds) widen the range (docs/ml.md)")
 
 
 @app.command()
