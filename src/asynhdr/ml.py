@@ -970,11 +970,11 @@ def _held_thresholds(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a
 def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
                dlog, locate, inv_h, wmax, g_lo, g_hi, net_g, net_v, c1, c2, s1, s2, gp, sgp,
                fixed, h, bvec, x, lmat, wy, wz, out, u_sd, stat, res, scan, split, st_o,
-               net_v2, split2):
+               net_v2, split2, saved):
     """One pixel (module docstring). Writes ``(g, sd, c_on, c_off, flag)`` into ``out``.
     ``u_sd > 0``: the pixel starts settled at its reference (``u ~ N(0, u_sd^2)``).
-    ``stat`` (5), ``st_o`` (5), ``res`` (6) and ``scan`` (:func:`_profile_scan`) are work
-    space.
+    ``stat`` (5), ``st_o`` (5), ``res`` (6), ``saved`` (11) and ``scan``
+    (:func:`_profile_scan`) are work space.
 
     The fit: a start (:func:`_start`), Gauss-Newton; when the fit is poor or vague, a scan
     of the profile objective (:func:`_profile_scan`) over the range, kept when better;
@@ -1010,8 +1010,7 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
     cand = 0
     collapsed = False
     attempt = 0
-    g_other = np.nan  # a second start (two trips), fitted beside the first
-    saved = np.empty(11)
+    g_other = np.nan  # a second start (two trips), fitted beside the first; its fit in saved
     while attempt < n_try:
         if attempt > 0:
             if collapsed:
@@ -1167,6 +1166,7 @@ def _estimate_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
         res = np.zeros(5)
         stat = np.zeros(5)
         st_o = np.zeros(5)
+        saved = np.zeros(11)
         work = np.zeros(6)
         scan = np.zeros((int((g_hi - g_lo) / (2.0 * _SCAN_STEP)) + 2, 10))
         for px in range(blk * _BLOCK, min(npx, (blk + 1) * _BLOCK)):
@@ -1183,7 +1183,7 @@ def _estimate_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
                        g0, dlog, locate, inv_h, wmax, g_lo, g_hi, net_g, net_v, con0[px],
                        coff0[px], max(scon[px], 1e-6), max(scoff[px], 1e-6), g_prior[px],
                        sg_prior[px], fixed, h, bvec, x, lmat, wy, wz, res, u_sd, stat, work,
-                       scan, split, st_o, net_v2, split2)
+                       scan, split, st_o, net_v2, split2, saved)
             out_g[px] = res[0]
             out_sd[px] = res[1]
             out_con[px] = res[2]
