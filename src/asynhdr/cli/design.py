@@ -100,14 +100,14 @@ def design(
     back = ""
     if p["family"] in ("round_trip", "two_round_trips"):
         c = 2.0 * p["b"] - p["a"]
-        back = (f", reopens over {p['b']:.2f}..{c:.2f}, scene panel closes over "
-                f"{c:.2f}..{2.0 * p['b']:.2f}")
+        back = (f", reopens over {p['b']:.3g}..{c:.3g}, scene panel closes over "
+                f"{c:.3g}..{2.0 * p['b']:.3g}")
         if p["family"] == "two_round_trips":
-            back += f"; again over {2.0 * p['b']:.2f}..{4.0 * p['b']:.2f}"
+            back += f"; again over {2.0 * p['b']:.3g}..{4.0 * p['b']:.3g}"
     console.print(f"design ({p['family']}): L_const {p['l_const']:.4g} lux; scene panel opens "
-                  f"over phase 0..{p['a']:.2f}, reference closes over "
-                  f"{p['a']:.2f}..{p['b']:.2f} to {p['floor_2']:g}{back}, hold to "
-                  f"{res.rig.ramp_fraction:.2f}; cycle {int(p['period_us'])} µs")
+                  f"over phase 0..{p['a']:.3g}, reference closes over "
+                  f"{p['a']:.3g}..{p['b']:.3g} to {p['floor_2']:g}{back}, hold to "
+                  f"{res.rig.ramp_fraction:.3g}; cycle {int(p['period_us'])} µs")
     pr = res.prediction
     console.print(f"predicted range (per-pixel SNR >= {min_snr_db:g} dB, readout bias <= "
                   f"{MAX_BIAS:.0%}): [bold]{res.range_db:.1f} dB[/] ({res.l_lo:.3g} to "
