@@ -73,7 +73,7 @@ def test_bad_scene_writes_nothing(tmp_path: Path, scene: str, message: str) -> N
     r = run("simulate", arg, "-o", out, "--width", "40", "--height", "20")
     assert r.exit_code == 2
     if scene != "notimage.exr":
-        assert message in r.output
+        assert message in " ".join(r.output.split())  # the console wraps long paths
     assert not out.exists()
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
 

@@ -29,7 +29,6 @@ attribute ``"asynhdr_metadata"`` and into the TIFF ImageDescription, both as JSO
 
 from __future__ import annotations
 
-import errno
 import json
 import logging
 import os
@@ -100,7 +99,7 @@ def _format_of(p: Path, table: Mapping[str, str], what: str) -> str:
 def _require_file(p: Path) -> None:
     if not p.is_file():
         reason = "is not a file" if p.exists() else "no such file"
-        raise FileNotFoundError(errno.ENOENT, f"{p}: {reason}", str(p))
+        raise FileNotFoundError(f"{p}: {reason}")
 
 
 def _not_an_image(p: Path, fmt: str, detail: str) -> ValueError:
