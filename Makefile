@@ -3,6 +3,9 @@ PYTHON ?= python3
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
 OUT    ?= out
+# test workers (pytest-xdist): the suite is many small cases, so two processes keep two
+# cores busy; TEST_WORKERS=0 runs it in this process
+TEST_WORKERS ?= 2
 
 .PHONY: demo test bench lint typecheck clean setup
 
@@ -24,7 +27,7 @@ typecheck: $(VENV)/.installed
 	$(VENV)/bin/mypy
 
 test: $(VENV)/.installed lint typecheck
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(TEST_WORKERS)
 
 bench: $(VENV)/.installed
 	$(PY) benchmarks/run.py --out $(OUT)/bench
