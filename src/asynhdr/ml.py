@@ -135,14 +135,16 @@ class MlModel:
         the reference is taken at the end of each dead time; else it walks by ``c``.
     reset_sigma, jitter_us, res_us : reset noise (log), jitter (µs), timestamp quantum (µs).
     noise_rate_per_us : background events per pixel per µs (outlier rate).
-    exact : ``(8, W)`` float64 per-µs rows for mode 0: ``a1, b2, da1, db2`` at the crossing
+    exact : ``(W, 8)`` float64 per whole µs slot for mode 0: ``a1, b2, da1, db2`` at the crossing
         time ``m + res/2 - latency`` and at the dead time's end ``m + res/2 + refractory``
         (``a1 = k_lens T1``, ``b2 = k_lens L_const T2``, ``d`` per µs).
     v0 : ``(a1, b2)`` at the cycle start (mode 0).
     rows : ``(K, n_rows, 2)`` float32 photoreceptor output at grid time ``s_k`` for grid
         value ``g_j = g0 + j dlog``, and its increment to ``s_{k+1}`` (mode 1).
-    locate : ``(4, W)`` float64 for mode 1: grid interval and fraction at the crossing
-        time and at the dead time's end; ``inv_h`` ``1 / (s[k+1] - s[k])``.
+    locate : ``(W, 6)`` float64 for mode 1, per whole µs slot: the grid interval ``k``
+        and the fraction into it at the crossing time, the same at the dead time's end,
+        and ``1 / (s[k+1] - s[k])`` of both intervals (one slot's entries side by side:
+        an evaluation reads one cache line of them).
     net_g, net_v : the model's net change of ``V`` from the cycle start to slot
         ``split_us``, ``net_v``, at ``g = net_g`` (made non-decreasing): the fit's start.
     split_us : the slot where that net change tells ``g`` best (its spread over ``g`` is
@@ -169,7 +171,6 @@ class MlModel:
     g0: float
     dlog: float
     locate: np.ndarray
-    inv_h: np.ndarray
     net_g: np.ndarray
     net_v: np.ndarray
     split_us: int
@@ -264,7 +265,7 @@ def ml_model(rig: Rig, sensor: SensorParams, *, window_us: float | None = None,
 
     exact = np.stack([np.interp(tc, ks, a1k), np.interp(tc, ks, b2k), slope(da1k, tc),
                       slope(db2k, tc), np.interp(te, ks, a1k), np.interp(te, ks, b2k),
-                      slope(da1k, te), slope(db2k, te)])
+                      slope(da1k, te), slope(db2k, te)], axis=1)
     v0 = (float(a1k[0]), float(b2k[0]))
     common = dict(window_us=w_us, g_lo=g_lo, g_hi=g_hi, dead=dead,
                   reset_sigma=float(sensor.reset_noise_sigma),
@@ -276,15 +277,15 @@ def ml_model(rig: Rig, sensor: SensorParams, *, window_us: float | None = None,
         slots = np.unique(np.append(np.arange(0, w_us, max(1, w_us // _SPLIT_TIMES)),
                                     w_us - 1))
         ec = e[::8, None]
-        ii = _split(np.log(exact[0, slots] * ec + exact[1, slots])
+        ii = _split(np.log(exact[slots, 0] * ec + exact[slots, 1])
                     - np.log(v0[0] * ec + v0[1]))
         nvs = []
         for i in ii:
             m_s = int(slots[i])
-            nv = np.log(exact[0, m_s] * e + exact[1, m_s]) - np.log(v0[0] * e + v0[1])
+            nv = np.log(exact[m_s, 0] * e + exact[m_s, 1]) - np.log(v0[0] * e + v0[1])
             nvs.append((_rising(nv), w_us if i < 0 else m_s + 1))
         return MlModel(mode=0, rows=np.zeros((2, 2, 2), np.float32), g0=g_lo, dlog=1.0,
-                       locate=np.zeros((4, 1)), inv_h=np.zeros(1), net_g=ng,
+                       locate=np.zeros((1, 6)), net_g=ng,
                        net_v=nvs[0][0], split_us=nvs[0][1], net_v2=nvs[1][0],
                        split2_us=nvs[1][1], description="exact log irradiance",
                        **common)  # type: ignore[arg-type]
@@ -308,13 +309,13 @@ def ml_model(rig: Rig, sensor: SensorParams, *, window_us: float | None = None,
         rows, _ = lowpass_rows(grid, a1, b2, s, y_end, lp)
     kmax = s.size - 2
 
-    def loc(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def loc(t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         k = np.clip(np.searchsorted(s, t, side="right") - 1, 0, kmax)
-        f = np.clip((t - s[k]) / (s[k + 1] - s[k]), 0.0, 1.0)
-        return k.astype(np.float64), f
+        h = s[k + 1] - s[k]
+        return k.astype(np.float64), np.clip((t - s[k]) / h, 0.0, 1.0), 1.0 / h
 
-    kc, fc = loc(tc)
-    ke, fe = loc(te)
+    kc, fc, hc = loc(tc)
+    ke, fe, he = loc(te)
     # time-major, value and increment to the next grid time side by side: one evaluation
     # reads 16 neighbouring bytes
     tab = np.empty((s.size, n_rows, 2), dtype=np.float32)
@@ -334,7 +335,7 @@ def ml_model(rig: Rig, sensor: SensorParams, *, window_us: float | None = None,
             m_split = max(1, min(int(np.searchsorted(tc, s[ks[i]], side="right")), w_us))
         nvs.append((_rising(nv), m_split))
     return MlModel(mode=1, rows=tab, g0=g_lo, dlog=float(dlog),
-                   locate=np.stack([kc, fc, ke, fe]), inv_h=1.0 / np.diff(s),
+                   locate=np.stack([kc, fc, ke, fe, hc, he], axis=1),
                    net_g=g_lo + dlog * np.arange(n_rows), net_v=nvs[0][0],
                    split_us=nvs[0][1], net_v2=nvs[1][0], split2_us=nvs[1][1],
                    description=f"photoreceptor low-pass tabulated ({n_rows} radiances x "
@@ -361,7 +362,7 @@ def _at_g(mode, g, g0, dlog, nr):
 
 
 @nb.njit(cache=True, inline="always")
-def _eval(mode, j, w, e, m, end, exact, v0a, v0b, rows, dlog, locate, inv_h):
+def _eval(mode, j, w, e, m, end, exact, v0a, v0b, rows, dlog, locate):
     """``(V, dV/dg, dV/dt)`` at whole µs slot ``m`` (``end``: the dead time's end; ``m < 0``:
     the cycle start) for the ``g`` that :func:`_at_g` gave ``(j, w, e)``."""
     if mode == 0:
@@ -369,35 +370,35 @@ def _eval(mode, j, w, e, m, end, exact, v0a, v0b, rows, dlog, locate, inv_h):
             irr = v0a * e + v0b
             return math.log(irr), v0a * e / irr, 0.0
         o = 4 if end else 0
-        a = exact[o, m]
-        b = exact[o + 1, m]
+        a = exact[m, o]
+        b = exact[m, o + 1]
         irr = a * e + b
-        return math.log(irr), a * e / irr, (exact[o + 2, m] * e + exact[o + 3, m]) / irr
+        return math.log(irr), a * e / irr, (exact[m, o + 2] * e + exact[m, o + 3]) / irr
     if m < 0:
         va = rows[0, j, 0]
         vb = rows[0, j + 1, 0]
         return va + w * (vb - va), (vb - va) / dlog, 0.0
     o = 2 if end else 0
-    k = int(locate[o, m])
-    f = locate[o + 1, m]
+    k = int(locate[m, o])
+    f = locate[m, o + 1]
     da = rows[k, j, 1]
     db = rows[k, j + 1, 1]
     va = rows[k, j, 0] + f * da
     vb = rows[k, j + 1, 0] + f * db
-    return va + w * (vb - va), (vb - va) / dlog, (da + w * (db - da)) * inv_h[k]
+    return va + w * (vb - va), (vb - va) / dlog, (da + w * (db - da)) * locate[m, 4 + o // 2]
 
 
 @nb.njit(cache=True, inline="always")
-def _slope_g(mode, j, w, e, m, exact, rows, dlog, locate, inv_h):
+def _slope_g(mode, j, w, e, m, exact, rows, dlog, locate):
     """``d(dV/dt)/dg`` at the crossing time of whole µs slot ``m`` (``m >= 0``), for the
     ``g`` that :func:`_at_g` gave ``(j, w, e)``."""
     if mode == 0:
-        a = exact[0, m]
-        b = exact[1, m]
+        a = exact[m, 0]
+        b = exact[m, 1]
         irr = a * e + b
-        return e * (exact[2, m] * b - exact[3, m] * a) / (irr * irr)
-    k = int(locate[0, m])
-    return (rows[k, j + 1, 1] - rows[k, j, 1]) * inv_h[k] / dlog
+        return e * (exact[m, 2] * b - exact[m, 3] * a) / (irr * irr)
+    k = int(locate[m, 0])
+    return (rows[k, j + 1, 1] - rows[k, j, 1]) * locate[m, 4] / dlog
 
 
 _JACOBIAN_MAX = 10.0
@@ -407,14 +408,14 @@ where ``dV/dt`` passes zero, the term is large and means little)."""
 
 @nb.njit(cache=True)
 def _moment(mode, g, t, p, lo, hi, dead, con, coff, u, exact, v0a, v0b, rows, g0, dlog,
-            locate, inv_h, wmax, skip, skip2, split):
+            locate, wmax, skip, skip2, split):
     """``sum_i r_i(g)`` over the events before slot ``split``, at fixed thresholds and
     ``u``: rises with ``g`` while the net change does (:attr:`MlModel.split_us`). With a
     dead time the first event is left out (its reference, ``u``, is unknown), unless it
     is the only one. Event ``skip`` is a background event (see :func:`_normal`)."""
     acc = 0.0
     jg, wg, eg = _at_g(mode, g, g0, dlog, rows.shape[1])
-    vs, _, _ = _eval(mode, jg, wg, eg, -1, False, exact, v0a, v0b, rows, dlog, locate, inv_h)
+    vs, _, _ = _eval(mode, jg, wg, eg, -1, False, exact, v0a, v0b, rows, dlog, locate)
     level = 0.0
     base = vs + u
     prev = -1
@@ -424,8 +425,7 @@ def _moment(mode, g, t, p, lo, hi, dead, con, coff, u, exact, v0a, v0b, rows, g0
             break
         if m >= wmax:
             m = wmax - 1
-        vc, _, _ = _eval(mode, jg, wg, eg, m, False, exact, v0a, v0b, rows, dlog, locate,
-                         inv_h)
+        vc, _, _ = _eval(mode, jg, wg, eg, m, False, exact, v0a, v0b, rows, dlog, locate)
         if i == skip or i == skip2:
             prev = m
             base = vc
@@ -438,7 +438,7 @@ def _moment(mode, g, t, p, lo, hi, dead, con, coff, u, exact, v0a, v0b, rows, g0
                     acc += vc - vs - u - step
             else:
                 ref, _, _ = _eval(mode, jg, wg, eg, prev, True, exact, v0a, v0b, rows,
-                                  dlog, locate, inv_h)
+                                  dlog, locate)
                 acc += vc - ref - step
             prev = m
         else:
@@ -487,7 +487,7 @@ def _solve4(h, b, x, lmat, y, z):
 
 @nb.njit(cache=True)
 def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
-            rows, g0, dlog, locate, inv_h, wmax, h, b, first_var, skip, skip2, stat, lam_nll):
+            rows, g0, dlog, locate, wmax, h, b, first_var, skip, skip2, stat, lam_nll):
     """Accumulate the Gauss-Newton normal equations of the events ``lo..hi`` at
     ``theta = (g, u, c_on, c_off)`` into ``h`` and ``b`` (``b = -sum w r J``); returns
     ``chi2 = sum w r^2``. ``first_var`` is added to the variance of the equations that hold
@@ -500,8 +500,7 @@ def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exac
     chi2 = 0.0
     nll = 0.0
     jg, wg, eg = _at_g(mode, g, g0, dlog, rows.shape[1])
-    vs, dgs, _ = _eval(mode, jg, wg, eg, -1, False, exact, v0a, v0b, rows, dlog, locate,
-                       inv_h)
+    vs, dgs, _ = _eval(mode, jg, wg, eg, -1, False, exact, v0a, v0b, rows, dlog, locate)
     n_on = 0.0
     n_off = 0.0
     prev = -1
@@ -520,7 +519,7 @@ def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exac
         if m >= wmax:
             m = wmax - 1
         vc, dgc, dtc = _eval(mode, jg, wg, eg, m, False, exact, v0a, v0b, rows, dlog,
-                             locate, inv_h)
+                             locate)
         if i == skip or i == skip2:
             if dead:
                 prev = m
@@ -545,7 +544,7 @@ def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exac
                 var = sr2 + dtc * dtc * tq2 + first_var
             else:
                 ref, dref, dte = _eval(mode, jg, wg, eg, prev, True, exact, v0a, v0b,
-                                       rows, dlog, locate, inv_h)
+                                       rows, dlog, locate)
                 var = sr2 + dtc * dtc * tq2 + dte * dte * eq2
             if p[i] > 0:
                 r = vc - ref - con
@@ -574,7 +573,7 @@ def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exac
         # noise's variance)
         jac = 0.0
         if dtc != 0.0:
-            jac = _slope_g(mode, jg, wg, eg, m, exact, rows, dlog, locate, inv_h) / dtc
+            jac = _slope_g(mode, jg, wg, eg, m, exact, rows, dlog, locate) / dtc
             jac = min(max(jac, -_JACOBIAN_MAX), _JACOBIAN_MAX)
         w = 1.0 / var
         z2 = r * r * w
@@ -661,7 +660,7 @@ def _initial(net, net_g, net_v):
 
 
 @nb.njit(cache=True)
-def _start(lo, hi, t, p, mode, dead, exact, v0a, v0b, rows, g0, dlog, locate, inv_h, wmax,
+def _start(lo, hi, t, p, mode, dead, exact, v0a, v0b, rows, g0, dlog, locate, wmax,
            g_lo, g_hi, net_g, net_v, c1, c2, mu_u, skip, skip2, split):
     """The fit's starting ``g``: where the model's net level change matches the events';
     then a bracket around it, widened until the moment sum changes sign, and false
@@ -687,23 +686,23 @@ def _start(lo, hi, t, p, mode, dead, exact, v0a, v0b, rows, g0, dlog, locate, in
     a = max(g - width, g_lo)
     bb = min(g + width, g_hi)
     fa = _moment(mode, a, t, p, lo, hi, dead, c1, c2, mu_u, exact, v0a, v0b, rows, g0, dlog,
-                 locate, inv_h, wmax, skip, skip2, split)
+                 locate, wmax, skip, skip2, split)
     fb = _moment(mode, bb, t, p, lo, hi, dead, c1, c2, mu_u, exact, v0a, v0b, rows, g0, dlog,
-                 locate, inv_h, wmax, skip, skip2, split)
+                 locate, wmax, skip, skip2, split)
     while fa > 0.0 and a > g_lo:
         bb = a
         fb = fa
         width *= 2.0
         a = max(a - width, g_lo)
         fa = _moment(mode, a, t, p, lo, hi, dead, c1, c2, mu_u, exact, v0a, v0b, rows, g0,
-                     dlog, locate, inv_h, wmax, skip, skip2, split)
+                     dlog, locate, wmax, skip, skip2, split)
     while fb < 0.0 and bb < g_hi:
         a = bb
         fa = fb
         width *= 2.0
         bb = min(bb + width, g_hi)
         fb = _moment(mode, bb, t, p, lo, hi, dead, c1, c2, mu_u, exact, v0a, v0b, rows, g0,
-                     dlog, locate, inv_h, wmax, skip, skip2, split)
+                     dlog, locate, wmax, skip, skip2, split)
     if fa >= 0.0:
         return a
     if fb <= 0.0:
@@ -714,7 +713,7 @@ def _start(lo, hi, t, p, mode, dead, exact, v0a, v0b, rows, g0, dlog, locate, in
         if bb - a < 0.02:
             break
         fg = _moment(mode, g, t, p, lo, hi, dead, c1, c2, mu_u, exact, v0a, v0b, rows, g0,
-                     dlog, locate, inv_h, wmax, skip, skip2, split)
+                     dlog, locate, wmax, skip, skip2, split)
         if fg > 0.0:
             bb = g
             fb = fg
@@ -732,7 +731,7 @@ def _start(lo, hi, t, p, mode, dead, exact, v0a, v0b, rows, g0, dlog, locate, in
 
 @nb.njit(cache=True)
 def _gauss_newton(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
-                  g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp,
+                  g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp,
                   n_iter, skip, skip2, h, bvec, x, lmat, wy, wz, stat, res):
     """Gauss-Newton from ``g``: plain least squares until converged (or half the
     iterations), then with the outlier weights. ``res`` gets ``(g, var_g, u, c_on, c_off,
@@ -747,7 +746,7 @@ def _gauss_newton(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v
         h[:, :] = 0.0
         bvec[:] = 0.0
         chi2 = _normal(mode, g, uu, cc1, cc2, t, p, lo, hi, dead, sr2, tq2, eq2,
-                       lam if robust else 0.0, exact, v0a, v0b, rows, g0, dlog, locate, inv_h,
+                       lam if robust else 0.0, exact, v0a, v0b, rows, g0, dlog, locate,
                        wmax, h, bvec, 0.0, skip, skip2, stat, -1.0)
         h[1, 1] += 1.0 / (su * su)
         bvec[1] += (mu_u - uu) / (su * su)
@@ -789,7 +788,7 @@ def _gauss_newton(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v
 
 @nb.njit(cache=True)
 def _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
-             dlog, locate, inv_h, wmax, c1, c2, s1, s2, su, mu_u, skip, skip2, h, bvec, st):
+             dlog, locate, wmax, c1, c2, s1, s2, su, mu_u, skip, skip2, h, bvec, st):
     """What a fit ``res`` (:func:`_gauss_newton`'s) is judged by against another: twice the
     negative log-likelihood of the event *times*, ``-2 sum ln(f_i + lambda)`` with
     ``f_i = phi(r_i / s_i) |V'(t_c,i)| / s_i`` the signal's density at the event's time and
@@ -802,7 +801,7 @@ def _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
     bvec[:] = 0.0
     lam_nll = max(lam, 0.0)
     _normal(mode, res[0], res[2], res[3], res[4], t, p, lo, hi, dead, sr2, tq2, eq2, 0.0,
-            exact, v0a, v0b, rows, g0, dlog, locate, inv_h, wmax, h, bvec, 0.0, skip, skip2,
+            exact, v0a, v0b, rows, g0, dlog, locate, wmax, h, bvec, 0.0, skip, skip2,
             st, lam_nll)
     n_bg = (1 if skip >= 0 else 0) + (1 if skip2 >= 0 else 0)
     bg = -2.0 * math.log(max(lam_nll, _DENSITY_FLOOR)) * n_bg
@@ -824,7 +823,7 @@ def _preferred(obj, var, best_obj, best_var):
 
 @nb.njit(cache=True)
 def _profile_scan(a0, step, n_g, mode, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, exact,
-                  v0a, v0b, rows, g0, dlog, locate, inv_h, wmax, uu, first_var, s1, s2, skip,
+                  v0a, v0b, rows, g0, dlog, locate, wmax, uu, first_var, s1, s2, skip,
                   skip2, work):
     """The ``g`` of ``a0 + i step`` (``i < n_g``) where the profile objective is least: the
     chi-square of :func:`_normal`'s equations (plain least squares, ``u`` at ``uu`` with
@@ -836,8 +835,7 @@ def _profile_scan(a0, step, n_g, mode, con, coff, t, p, lo, hi, dead, sr2, tq2, 
     nr = rows.shape[1]
     for q in range(n_g):
         jq, wq, eq = _at_g(mode, a0 + q * step, g0, dlog, nr)
-        vs, _, _ = _eval(mode, jq, wq, eq, -1, False, exact, v0a, v0b, rows, dlog, locate,
-                         inv_h)
+        vs, _, _ = _eval(mode, jq, wq, eq, -1, False, exact, v0a, v0b, rows, dlog, locate)
         work[q, 0] = jq
         work[q, 1] = wq
         work[q, 2] = eq
@@ -860,7 +858,7 @@ def _profile_scan(a0, step, n_g, mode, con, coff, t, p, lo, hi, dead, sr2, tq2, 
                 for q in range(n_g):
                     jq = int(work[q, 0])
                     work[q, 3], _, _ = _eval(mode, jq, work[q, 1], work[q, 2], m, False,
-                                             exact, v0a, v0b, rows, dlog, locate, inv_h)
+                                             exact, v0a, v0b, rows, dlog, locate)
                 has_u = 0.0
                 n_on = 0.0
                 n_off = 0.0
@@ -884,15 +882,14 @@ def _profile_scan(a0, step, n_g, mode, con, coff, t, p, lo, hi, dead, sr2, tq2, 
             jq = int(work[q, 0])
             wq = work[q, 1]
             eq = work[q, 2]
-            vc, _, dtc = _eval(mode, jq, wq, eq, m, False, exact, v0a, v0b, rows, dlog, locate,
-                               inv_h)
+            vc, _, dtc = _eval(mode, jq, wq, eq, m, False, exact, v0a, v0b, rows, dlog, locate)
             if dead:
                 if prev < 0:
                     r = vc - work[q, 3] - uu - step_c
                     var = sr2 + dtc * dtc * tq2 + first_var
                 else:
                     ref, _, dte = _eval(mode, jq, wq, eq, prev, True, exact, v0a, v0b, rows,
-                                        dlog, locate, inv_h)
+                                        dlog, locate)
                     r = vc - ref - step_c
                     var = sr2 + dtc * dtc * tq2 + dte * dte * eq2
             else:
@@ -931,7 +928,7 @@ def _profile_scan(a0, step, n_g, mode, con, coff, t, p, lo, hi, dead, sr2, tq2, 
 
 @nb.njit(cache=True)
 def _held_thresholds(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
-                     g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp,
+                     g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp,
                      sgp, skip, skip2, h, bvec, x, lmat, wy, wz, stat, res, st_o):
     """Guard a fit ``res`` (from start ``g``) whose thresholds left their prior by more than
     :data:`_THRESHOLD_Z` of its spread: Gauss-Newton minimises the residuals alone, and a
@@ -942,16 +939,16 @@ def _held_thresholds(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a
     if abs(res[3] - c1) <= _THRESHOLD_Z * s1 and abs(res[4] - c2) <= _THRESHOLD_Z * s2:
         return
     nll0 = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
-                    g0, dlog, locate, inv_h, wmax, c1, c2, s1, s2, su, mu_u, skip, skip2, h,
+                    g0, dlog, locate, wmax, c1, c2, s1, s2, su, mu_u, skip, skip2, h,
                     bvec, st_o)
     res2 = np.empty(6)
     stat2 = np.empty(5)
     _gauss_newton(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
-                  dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, 0.1 * s1, 0.1 * s2, su, mu_u,
+                  dlog, locate, wmax, g_lo, g_hi, c1, c2, 0.1 * s1, 0.1 * s2, su, mu_u,
                   gp, sgp, np.int64(_MAX_ITER), skip, skip2, h, bvec, x, lmat, wy, wz, stat2,
                   res2)
     nll1 = _fit_nll(res2, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
-                    rows, g0, dlog, locate, inv_h, wmax, c1, c2, s1, s2, su, mu_u, skip,
+                    rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su, mu_u, skip,
                     skip2, h, bvec, st_o)
     if not nll1 < nll0:
         return
@@ -961,14 +958,14 @@ def _held_thresholds(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a
         stat[k] = stat2[k]
     # the information at that fit with the real priors (no step)
     _gauss_newton(res2[0], lo, hi, t, p, mode, dead, sr2, tq2, eq2, 0.0, exact, v0a, v0b,
-                  rows, g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u,
+                  rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u,
                   gp, sgp, np.int64(0), skip, skip2, h, bvec, x, lmat, wy, wz, stat2, res2)
     res[1] = res2[1]
 
 
 @nb.njit(cache=True)
 def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
-               dlog, locate, inv_h, wmax, g_lo, g_hi, net_g, net_v, c1, c2, s1, s2, gp, sgp,
+               dlog, locate, wmax, g_lo, g_hi, net_g, net_v, c1, c2, s1, s2, gp, sgp,
                fixed, h, bvec, x, lmat, wy, wz, out, u_sd, stat, res, scan, split, st_o,
                net_v2, split2, saved):
     """One pixel (module docstring). Writes ``(g, sd, c_on, c_off, flag)`` into ``out``.
@@ -988,7 +985,7 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
         mu_u = 0.0
     if fixed:
         _gauss_newton(gp, lo, hi, t, p, mode, dead, sr2, tq2, eq2, 0.0, exact, v0a, v0b, rows,
-                      g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp,
+                      g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp,
                       sgp, np.int64(0), np.int64(-1), np.int64(-1), h, bvec, x, lmat, wy, wz, stat,
                       res)
         out[0] = gp
@@ -1019,41 +1016,40 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
         if 0.0 < sgp < 1e-3:
             g = gp
         else:
-            g = _start(lo, hi, t, p, mode, dead, exact, v0a, v0b, rows, g0, dlog, locate,
-                       inv_h, wmax, g_lo, g_hi, net_g, net_v, c1, c2, mu_u, skip, skip2,
-                       split)
+            g = _start(lo, hi, t, p, mode, dead, exact, v0a, v0b, rows, g0, dlog, locate, wmax,
+                       g_lo, g_hi, net_g, net_v, c1, c2, mu_u, skip, skip2, split)
             if attempt == 0 and split2 != split:
                 # two trips: the start from the first turn too; the fit that is likelier
                 g2 = _start(lo, hi, t, p, mode, dead, exact, v0a, v0b, rows, g0, dlog,
-                            locate, inv_h, wmax, g_lo, g_hi, net_g, net_v2, c1, c2, mu_u,
+                            locate, wmax, g_lo, g_hi, net_g, net_v2, c1, c2, mu_u,
                             skip, skip2, split2)
                 if abs(g2 - g) > 0.02:
                     g_other = g2
         if g_other == g_other:
             _gauss_newton(g_other, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
-                          v0b, rows, g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, s1,
+                          v0b, rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1,
                           s2, su, mu_u, gp, sgp, np.int64(_MAX_ITER), skip, skip2, h, bvec, x,
                           lmat, wy, wz, stat, res)
             _held_thresholds(g_other, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact,
-                             v0a, v0b, rows, g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2,
+                             v0a, v0b, rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2,
                              s1, s2, su, mu_u, gp, sgp, skip, skip2, h, bvec, x, lmat, wy, wz,
                              stat, res, st_o)
             o_other = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
-                               v0b, rows, g0, dlog, locate, inv_h, wmax, c1, c2, s1, s2, su,
+                               v0b, rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su,
                                mu_u, skip, skip2, h, bvec, st_o)
             for c in range(6):
                 saved[c] = res[c]
             for c in range(5):
                 saved[6 + c] = stat[c]
         _gauss_newton(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
-                      g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp,
+                      g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp,
                       sgp, np.int64(_MAX_ITER), skip, skip2, h, bvec, x, lmat, wy, wz, stat, res)
         _held_thresholds(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
-                         rows, g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, s1, s2, su,
+                         rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su,
                          mu_u, gp, sgp, skip, skip2, h, bvec, x, lmat, wy, wz, stat, res, st_o)
         if g_other == g_other:
             o_this = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
-                              v0b, rows, g0, dlog, locate, inv_h, wmax, c1, c2, s1, s2, su,
+                              v0b, rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su,
                               mu_u, skip, skip2, h, bvec, st_o)
             if _preferred(o_other, saved[1], o_this, res[1]):
                 for c in range(6):
@@ -1072,7 +1068,7 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
             # their best for each g), coarse to fine: steps of 2 x _SCAN_STEP over the
             # range, then _SCAN_STEP / 2 around the best; keep whichever fit is better
             obj = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
-                           rows, g0, dlog, locate, inv_h, wmax, c1, c2, s1, s2, su, mu_u, skip,
+                           rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su, mu_u, skip,
                            skip2, h, bvec, st_o)
             r0, r1, r2, r3, r4, r5 = res[0], res[1], res[2], res[3], res[4], res[5]
             z0, z1, z2, z3 = stat[0], stat[1], stat[2], stat[3]
@@ -1084,17 +1080,17 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
                 n_g = min(int((a1 - a0) / step + 1e-9) + 1, scan.shape[0])
                 gbest = _profile_scan(a0, step, n_g, mode, c1, c2, t, p, lo, hi, dead, sr2,
                                       tq2, eq2, exact, v0a, v0b, rows, g0, dlog, locate,
-                                      inv_h, wmax, mu_u, su * su, s1, s2, skip, skip2, scan)
+                                      wmax, mu_u, su * su, s1, s2, skip, skip2, scan)
             _gauss_newton(gbest, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
-                          v0b, rows, g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, s1,
+                          v0b, rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1,
                           s2, su, mu_u, gp, sgp, np.int64(_MAX_ITER), skip, skip2, h, bvec, x,
                           lmat, wy, wz, stat, res)
             _held_thresholds(gbest, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
-                             v0b, rows, g0, dlog, locate, inv_h, wmax, g_lo, g_hi, c1, c2, s1,
+                             v0b, rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1,
                              s2, su, mu_u, gp, sgp, skip, skip2, h, bvec, x, lmat, wy, wz, stat,
                              res, st_o)
             obj1 = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
-                            v0b, rows, g0, dlog, locate, inv_h, wmax, c1, c2, s1, s2, su, mu_u,
+                            v0b, rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su, mu_u,
                             skip, skip2, h, bvec, st_o)
             if _preferred(obj1, res[1], obj, r1):
                 obj = obj1
@@ -1119,7 +1115,7 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
                 sk = np.int64(-1)
                 sk2 = np.int64(-1)
             obj = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
-                           rows, g0, dlog, locate, inv_h, wmax, c1, c2, s1, s2, su, mu_u, sk,
+                           rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su, mu_u, sk,
                            sk2, h, bvec, st_o)
         improved = best_obj == np.inf or _preferred(obj, res[1], best_obj, best_v)
         if improved:
@@ -1148,7 +1144,7 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
 
 @nb.njit(cache=True, parallel=True)
 def _estimate_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
-                     dlog, locate, inv_h, wmax, g_lo, g_hi, net_g, net_v, min_events, con0,
+                     dlog, locate, wmax, g_lo, g_hi, net_g, net_v, min_events, con0,
                      coff0, scon, scoff, g_prior, sg_prior, fixed, out_g, out_sd, out_con,
                      out_coff, out_flag, u_sd, split, net_v2, split2):
     """Fit every pixel (module docstring), in blocks of ``_BLOCK`` per thread. ``fixed``:
@@ -1180,7 +1176,7 @@ def _estimate_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
                 out_flag[px] = 1
                 continue
             _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
-                       g0, dlog, locate, inv_h, wmax, g_lo, g_hi, net_g, net_v, con0[px],
+                       g0, dlog, locate, wmax, g_lo, g_hi, net_g, net_v, con0[px],
                        coff0[px], max(scon[px], 1e-6), max(scoff[px], 1e-6), g_prior[px],
                        sg_prior[px], fixed, h, bvec, x, lmat, wy, wz, res, u_sd, stat, work,
                        scan, split, st_o, net_v2, split2, saved)
@@ -1308,7 +1304,7 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
     eq2 = model.res_us ** 2 / 12.0 + (model.jitter_us ** 2 if model.dead else 0.0)
     _estimate_kernel(off, t, p, model.mode, model.dead, model.reset_sigma ** 2, tq2, eq2,
                      model.noise_rate_per_us, model.exact, model.v0[0], model.v0[1],
-                     model.rows, model.g0, model.dlog, model.locate, model.inv_h,
+                     model.rows, model.g0, model.dlog, model.locate,
                      np.int64(model.window_us), model.g_lo, model.g_hi, model.net_g,
                      model.net_v, np.int64(1 if fixed else min_events),
                      np.ascontiguousarray(con), np.ascontiguousarray(coff),
