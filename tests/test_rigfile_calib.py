@@ -206,6 +206,38 @@ def test_design_ranks_range_then_the_simplest_rig_at_the_mean_snr() -> None:
     assert best((130.0, 74.2, 0), (130.0, 75.0, 0)) == 1
 
 
+def test_cli_design_writes_the_rig_it_prints(tmp_path: Path) -> None:
+    # the ideal pixel, sequential rigs at 20 cycles/s: the whole 0.1 .. 316,000 lux range
+    # (130 dB, as the designed default predicts); the rig file holds the printed design
+    # and reads back as a rig; bad ranges and families write nothing
+    import json
+
+    from typer.testing import CliRunner
+
+    from asynhdr.cli import _register, app
+
+    _register()
+    runner = CliRunner()
+    rig_p, js = tmp_path / "rig.toml", tmp_path / "design.json"
+    res = runner.invoke(app, ["design", "--preset", "ideal", "--family", "sequential",
+                              "--frame-rate-hz", "20", "-o", str(rig_p), "--json", str(js)])
+    assert res.exit_code == 0, res.output
+    d = json.loads(js.read_text())
+    assert d["range_db"] == pytest.approx(130.0) and d["params"]["family"] == "sequential"
+    assert f"{d['range_db']:.1f} dB" in res.output
+    rig = read_rig(rig_p).rig
+    assert rig.period_us == 50_000 and rig.l_const == pytest.approx(d["params"]["l_const"])
+    db, _, _, _ = predict(rig, get_preset("ideal"),
+                          levels=np.geomspace(0.1, 10 ** 5.5, 14)).run(20.0)
+    assert db == pytest.approx(130.0)
+    for bad, message in ((["--family", "zigzag"], "unknown rig families"),
+                         (["--l-min", "10", "--l-max", "1"], "--l-min < --l-max")):
+        out = tmp_path / "bad.toml"
+        res = runner.invoke(app, ["design", "--preset", "ideal", "-o", str(out), *bad])
+        assert res.exit_code == 2 and message in " ".join(res.output.split())
+        assert not out.exists()
+
+
 def test_thresholds_from_results_weights_by_events() -> None:
     # hand-computed: pixel 0 fired 3 ON in cycle 0 (c_on 0.20) and 1 ON in cycle 1
     # (c_on 0.24): (3 * 0.20 + 1 * 0.24) / 4 = 0.21; no OFF event: NaN
