@@ -198,6 +198,27 @@ def test_pixels_without_information_are_nan_and_flagged() -> None:
     assert math.isnan(out["sigma_log"][0, 0, 0])
 
 
+def test_pixels_beyond_the_range_hold_its_bound_and_are_flagged() -> None:
+    # the ideal pixel on the ideal preset's designed rig, 10x above the top of ml's model
+    # range and 10x below its bottom: the events cannot tell how far beyond, so the
+    # image holds the bound (a saturated pixel, not a hole), flagged, without a deviation;
+    # a pixel inside the range keeps its estimate
+    rig = default_rig("ideal")
+    sensor = get_preset("ideal")
+    model = ml.cached_model(rig, sensor, window_us=rig.ramp_us)
+    top, bottom = math.exp(model.g_hi), math.exp(model.g_lo)
+    scene = np.array([[10.0 * top, bottom / 10.0, 1000.0]])
+    rec = simulate(scene, rig=rig, sensor=sensor, n_cycles=2, rng=0)
+    out: dict = {}
+    img = reconstruct(rec, method="ml", ml_options={"out": out})[-1]
+    assert img[0, 0] == pytest.approx(top, rel=1e-6)
+    assert img[0, 1] == pytest.approx(bottom, rel=1e-6)
+    assert img[0, 2] == pytest.approx(1000.0, rel=1e-3)
+    assert list(out["flags"][-1, 0]) == [ml.FLAG_OUT_OF_RANGE, ml.FLAG_OUT_OF_RANGE, 0]
+    assert np.isnan(out["sigma_log"][-1, 0, :2]).all()
+    assert np.isfinite(out["sigma_log"][-1, 0, 2])
+
+
 def test_reconstruct_ml_needs_rig() -> None:
     rec = simulate(np.full((2, 2), 100.0), rig=default_rig("ideal"), sensor="ideal")
     bare = Recording(events=rec.events, width=2, height=2, triggers=rec.triggers,

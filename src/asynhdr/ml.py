@@ -50,8 +50,10 @@ crossings that the jitter clamps to the end of a dead time are treated as unclam
 
 Pixels without events carry no information: NaN, flag :data:`FLAG_NO_EVENTS`; nor do
 pixels whose estimate is uncertain to a factor e or more (:data:`FLAG_UNINFORMED`). Pixels
-whose estimate leaves the model's radiance range are flagged :data:`FLAG_OUT_OF_RANGE`
-and set to NaN too (the bound is printed in the log, not the image).
+whose estimate reaches a bound of the model's radiance range are flagged
+:data:`FLAG_OUT_OF_RANGE` and hold the bound (brighter than the range: its top, as a
+camera's saturated pixel; darker: its bottom); their standard deviation is NaN. The mask
+(:attr:`MlResult.mask`) is False for all three.
 """
 
 from __future__ import annotations
@@ -103,7 +105,9 @@ FLAG_NO_EVENTS = 1
 """Flag: the pixel fired fewer than ``min_events`` events in the window (two by default:
 the first event's reference is unknown, so one event only bounds the radiance): NaN."""
 FLAG_OUT_OF_RANGE = 2
-"""Flag: the estimate left the model's radiance range: NaN."""
+"""Flag: the estimate reached a bound of the model's radiance range: the pixel is at least
+as bright as the upper bound (or at most as dark as the lower), and the image holds that
+bound, as a saturated pixel of a camera holds its full scale; no standard deviation."""
 FLAG_UNINFORMED = 4
 """Flag: the estimate's standard deviation of ``ln L`` is 1 or more (the events fix ``L``
 to no better than a factor e: a plateau of the likelihood): NaN, the deviation kept."""
@@ -1240,7 +1244,8 @@ class MlResult:
 
     Attributes
     ----------
-    radiance : float32 ``L = exp(g_hat)`` in the unit of ``L_const``; NaN where flagged.
+    radiance : float32 ``L = exp(g_hat)`` in the unit of ``L_const``; NaN without events
+        or information, the range's bound where the estimate reached it.
     sigma_log : float32 standard deviation of ``ln L`` (the bound at the estimate).
     flags : uint8, 0 (estimated), :data:`FLAG_NO_EVENTS`, :data:`FLAG_OUT_OF_RANGE`,
         :data:`FLAG_UNINFORMED`.
@@ -1258,7 +1263,7 @@ class MlResult:
 
     @property
     def mask(self) -> np.ndarray:
-        """True where the pixel has an estimate."""
+        """True where the pixel has an estimate inside the model's range."""
         return self.flags == 0
 
 
@@ -1359,11 +1364,10 @@ def estimate(
                                    start_us=int(starts[c]), window_us=model.window_us)
         g, s, c1, c2, fl, counts = _run(model, off, t, p, npx, priors, g_prior,
                                         g_prior_sigma, False, min_events, start_sigma)
-        bad = fl != 0
         with np.errstate(over="ignore"):
-            r = np.exp(g)
-        r[bad] = np.nan
-        s[bad & (fl != FLAG_UNINFORMED)] = np.nan
+            r = np.exp(g)  # a pixel out of the range keeps the bound it reached
+        r[(fl == FLAG_NO_EVENTS) | (fl == FLAG_UNINFORMED)] = np.nan
+        s[(fl == FLAG_NO_EVENTS) | (fl == FLAG_OUT_OF_RANGE)] = np.nan
         rad[c] = r.reshape(height, width)
         sd[c] = s.reshape(height, width)
         flags[c] = fl.reshape(height, width)
@@ -1376,10 +1380,10 @@ def estimate(
     n_out = int(np.count_nonzero(flags == FLAG_OUT_OF_RANGE))
     n_vague = int(np.count_nonzero(flags == FLAG_UNINFORMED))
     if n_none or n_out or n_vague:
-        logger.info("ml: %d pixel-cycles without events, %d outside the model's range "
-                    "(%.3g to %.3g), %d whose events fix L to no better than a factor e: "
-                    "NaN", n_none, n_out, math.exp(model.g_lo), math.exp(model.g_hi),
-                    n_vague)
+        logger.info("ml: %d pixel-cycles without events and %d whose events fix L to no "
+                    "better than a factor e: NaN; %d at a bound of the model's range "
+                    "(%.3g to %.3g): the bound", n_none, n_vague, n_out,
+                    math.exp(model.g_lo), math.exp(model.g_hi))
     return MlResult(radiance=rad, sigma_log=sd, flags=flags, c_on=con, c_off=coff,
                     n_events=nev)
 

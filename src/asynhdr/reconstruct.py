@@ -53,7 +53,8 @@ thresholds when given. Pixels with no usable event are 0.
 Maximum likelihood (``ml``, :mod:`asynhdr.ml`): each pixel's events inverted together
 through the simulator's own pixel model (thresholds, dead time, reset noise, jitter,
 photoreceptor, background events); linear radiance with a per-pixel uncertainty, NaN
-where a pixel has no information. It needs the rig and the sensor model (the recording's
+where a pixel has no information, the model range's bound where the estimate reached it
+(as a saturated pixel holds full scale). It needs the rig and the sensor model (the recording's
 metadata, or a rig file, :mod:`asynhdr.io.rigfile`).
 
 Methods are records (:class:`Method` in :data:`METHODS`): a new method is one function

@@ -1,9 +1,10 @@
 """What ``asynhdr reconstruct`` needs for rig files and for ``ml``'s extra outputs.
 
 For ``--method ml`` each cycle writes, beside the radiance image (NaN where a pixel has no
-information), ``<stem>_sigma.<ext>``: the standard deviation of ``ln L`` per pixel (the
-model's bound at the estimate), in the first float format asked for (``.exr`` by
-default), and ``<stem>_valid.png``: 255 where the pixel has an estimate, 0 where not.
+information; the range's bound where the estimate reached it), ``<stem>_sigma.<ext>``:
+the standard deviation of ``ln L`` per pixel (the model's bound at the estimate), in the
+first float format asked for (``.exr`` by default), and ``<stem>_valid.png``: 255 where
+the pixel has an estimate inside the model's range, 0 where not.
 """
 
 from __future__ import annotations
