@@ -614,3 +614,39 @@ def test_gather_is_a_stable_sort_by_time(nbins: int) -> None:
     np.testing.assert_array_equal(ev["x"], np.concatenate(want_x)[order])
     np.testing.assert_array_equal(ev["y"], np.concatenate(want_y)[order])
     np.testing.assert_array_equal(ev["p"], np.concatenate(want_p)[order])
+
+
+def test_level_ladder_finds_the_first_crossing_a_plain_scan_finds() -> None:
+    """The look-up that brackets a crossing (``level_index``) returns, for any weights and
+    level, the first knot where a plain scan of ``wa A + wb B`` reaches the level: rows
+    that rise, then fall, with flat stretches and steps of every size."""
+    from asynhdr.sensor.photoreceptor import row_runs
+
+    rng = np.random.default_rng(7)
+    nk = 400
+    steps = rng.exponential(1.0, (2, nk - 1)) * (rng.random((2, nk - 1)) < 0.8)
+    steps[:, nk // 2:] *= -1.0  # rise over the first half, fall over the second
+    rows = np.concatenate([np.zeros((2, 1)), np.cumsum(steps, axis=1)], axis=1)
+    rows[1] += 0.3
+    key = np.zeros(1, dtype=np.int64)
+    run_off, run_tab = row_runs(rows, key, key + 1)
+    assert sorted(run_tab[:, 2].tolist()) == [-1, 1]
+    ia = np.zeros(1, dtype=np.int64)
+    inv_off, inv_lvl, inv_tab = pixel_mod.level_index(rows, ia, ia + 1, key, run_off, run_tab)
+    checked = 0
+    for _ in range(3000):
+        w = float(rng.random())
+        g = int(rng.integers(run_tab.shape[0]))
+        k0, k1, d = (int(v) for v in run_tab[g])
+        v = (1.0 - w) * rows[0] + w * rows[1]
+        lo = int(rng.integers(k0, k1 + 1))
+        up = d > 0
+        thr = float(rng.uniform(v[k0:k1 + 1].min() - 1.0, v[k0:k1 + 1].max() + 1.0))
+        hit = [j for j in range(lo, k1 + 1) if (v[j] >= thr if up else v[j] <= thr)]
+        want = hit[0] if hit else k1 + 1
+        got = pixel_mod._first_indexed(rows, 0, 1, 1.0 - w, w, lo, k1, thr, up,
+                                       v[lo - 1] if lo > 0 else v[lo], g, inv_off,
+                                       inv_lvl, inv_tab)
+        assert got == want, (g, lo, thr, w)
+        checked += bool(hit) and want > lo
+    assert checked > 500  # most cases are real searches, not the first knot or none

@@ -33,7 +33,9 @@ n)``: the same seed gives the same events on any number of threads.
 Finding crossings: the grid is cut into runs on which the pixel's ``V`` is monotone
 (for the exact irradiance, per pixel from the turning point of ``L T1 + L_const T2``
 inside each piece of the waveform; for tabulated rows, from the rows' own turns), so
-the next crossing of a level is a galloping search from the current point. Runs whose
+the next crossing of a level is a search from the current point: on tabulated rows a
+ladder of levels per run (:func:`level_index`) brackets it with one look-up, on the exact
+irradiance secant steps from the local slope do; a bisection ends both. Runs whose
 direction the two interpolated rows do not agree on are scanned point by point.
 """
 
@@ -255,6 +257,111 @@ def _first(rows, ia, ib, wa, wb, lo, hi, thr, up, v_prev):
     return _bisect(rows, ia, ib, wa, wb, a + 1, b, thr, up)
 
 
+@nb.njit(cache=True, error_model="numpy")
+def _index_row(x, k0, k1, sg, vmin, dq, out, col):
+    """``out[q, col]``: the first knot ``k`` in ``[k0, k1]`` where ``sg x[k] >= vmin + q dq``
+    (``k1 + 1`` when none); ``sg x`` is non-decreasing there, so one forward pass."""
+    k = k0
+    for q in range(out.shape[0]):
+        lvl = vmin + q * dq
+        while k <= k1 and sg * x[k] < lvl:
+            k += 1
+        out[q, col] = k
+
+
+@nb.njit(cache=True, parallel=True, error_model="numpy")
+def _build_index(rows, rep_a, rep_b, run_off, run_tab, inv_off, inv_lvl, inv_tab):
+    for key in nb.prange(rep_a.shape[0]):
+        if rep_a[key] < 0:
+            continue
+        xa = rows[rep_a[key]]
+        xb = rows[rep_b[key]]
+        for g in range(run_off[key], run_off[key + 1]):
+            inv_lvl[g, 1] = 0.0
+            m = inv_off[g + 1] - inv_off[g] - 1
+            d = run_tab[g, 2]
+            if d == 0 or m < 1:
+                continue
+            k0 = run_tab[g, 0]
+            k1 = run_tab[g, 1]
+            sg = 1.0 if d > 0 else -1.0
+            vmin = min(sg * xa[k0], sg * xb[k0])
+            vmax = max(sg * xa[k1], sg * xb[k1])
+            if not vmax > vmin:
+                continue
+            dq = (vmax - vmin) / m
+            part = inv_tab[inv_off[g]:inv_off[g + 1]]
+            _index_row(xa, k0, k1, sg, vmin, dq, part, 0)
+            _index_row(xb, k0, k1, sg, vmin, dq, part, 1)
+            inv_lvl[g, 0] = vmin
+            inv_lvl[g, 1] = 1.0 / dq
+
+
+def level_index(rows: np.ndarray, ia: np.ndarray, ib: np.ndarray, run_key: np.ndarray,
+                run_off: np.ndarray, run_tab: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where each row of a monotone run reaches each of a ladder of levels.
+
+    For run ``g`` (both rows of its pair move one way, ``sg = +1`` up or ``-1`` down)
+    the levels are ``vmin + q dq`` in ``sg V``, as many as the run has intervals, from
+    the rows' lower start to their higher end; ``inv_tab[inv_off[g] + q]`` holds the
+    first knot where each of the two rows reaches level ``q``. A pixel's signal lies
+    between its two rows, so its first crossing of a level lies between the rows'
+    crossings of the ladder's levels on either side: one look-up brackets it.
+    Returns ``(inv_off, inv_lvl, inv_tab)``; ``inv_lvl[g] = (vmin, 1 / dq)``, with
+    ``1 / dq = 0`` where run ``g`` has no ladder (mixed direction, flat, one interval).
+    """
+    nkeys = run_off.size - 1
+    span = run_tab[:, 1] - run_tab[:, 0]
+    m = np.where(run_tab[:, 2] != 0, span, 0)
+    inv_off = np.zeros(run_tab.shape[0] + 1, dtype=np.int64)
+    np.cumsum(m + 1, out=inv_off[1:])
+    rep = np.full(nkeys, -1, dtype=np.int64)
+    rep[run_key[::-1]] = np.arange(run_key.size - 1, -1, -1)
+    rep_a = np.where(rep >= 0, ia[np.maximum(rep, 0)], -1).astype(np.int64)
+    rep_b = np.where(rep >= 0, ib[np.maximum(rep, 0)], -1).astype(np.int64)
+    inv_lvl = np.zeros((run_tab.shape[0], 2), dtype=np.float64)
+    inv_tab = np.empty((int(inv_off[-1]), 2), dtype=np.int32)
+    _build_index(rows, rep_a, rep_b, run_off, run_tab, inv_off, inv_lvl, inv_tab)
+    return inv_off, inv_lvl, inv_tab
+
+
+@nb.njit(cache=True, inline="always", error_model="numpy")
+def _first_indexed(rows, ia, ib, wa, wb, lo, hi, thr, up, v_prev, g, inv_off, inv_lvl,
+                   inv_tab):
+    """:func:`_first` on run ``g`` of a pair with a level ladder (:func:`level_index`):
+    the same knot, bracketed by one look-up instead of secant steps."""
+    inv = inv_lvl[g, 1]
+    if inv == 0.0:
+        return _first(rows, ia, ib, wa, wb, lo, hi, thr, up, v_prev)
+    if _reaches(_val(rows, ia, ib, wa, wb, lo), thr, up):
+        return lo
+    if lo == hi:
+        return hi + 1
+    sg = 1.0 if up else -1.0
+    x = (sg * thr - inv_lvl[g, 0]) * inv
+    base = inv_off[g]
+    m = inv_off[g + 1] - base - 1
+    if x >= m + 1.0:
+        return hi + 1
+    q = np.int64(x) if x > 0.0 else np.int64(0)
+    # levels q - 1 and q + 2: one either side of thr whatever the rounding of x
+    ql = q - 1 if q >= 1 else 0
+    a = max(lo + 1, min(np.int64(inv_tab[base + ql, 0]), np.int64(inv_tab[base + ql, 1])))
+    if q + 2 <= m:
+        b = max(np.int64(inv_tab[base + q + 2, 0]), np.int64(inv_tab[base + q + 2, 1]))
+        b = min(b, hi)
+    else:
+        b = hi
+    if not _reaches(_val(rows, ia, ib, wa, wb, b), thr, up):
+        if b == hi:
+            return hi + 1
+        return _first(rows, ia, ib, wa, wb, lo, hi, thr, up, v_prev)
+    if a > b:
+        a = b
+    return _bisect(rows, ia, ib, wa, wb, a, b, thr, up)
+
+
 @nb.njit(cache=True, inline="always", error_model="numpy")
 def _locate(s, idx, lo, hi, t):
     """Interval index ``k`` in ``[lo, hi]`` with ``s[k] <= t < s[k + 1]`` (``s[lo] <= t``):
@@ -305,9 +412,9 @@ def _levels(r_lvl, con, coff, log_domain):
 
 @nb.njit(cache=True, parallel=True, error_model="numpy")
 def _fire(pix, order, s, idx, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pieces, run_key,
-          run_off, run_tab, c_on, c_off, ref, ready, pending, pending_z, alive, nz_off, nz_t,
-          nz_pol, seed, cycle, sigma, refr_us, lat_us, jit_us, period_us, offsets, slot_t,
-          slot_p, counts, overflow, n_lost, t_lo, nbins, block):
+          run_off, run_tab, inv_off, inv_lvl, inv_tab, c_on, c_off, ref, ready, pending,
+          pending_z, alive, nz_off, nz_t, nz_pol, seed, cycle, sigma, refr_us, lat_us, jit_us,
+          period_us, offsets, slot_t, slot_p, counts, overflow, n_lost, t_lo, nbins, block):
     """Events of one cycle for the listed pixels ``pix`` (module docstring).
 
     ``order`` lists blocks of ``block`` listed pixels in the order threads take them.
@@ -341,6 +448,7 @@ def _fire(pix, order, s, idx, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pi
             e_off = math.exp(-coff)
             runs, nr = _runs_of(i, mode, xa, xb, d1, d2, pieces, run_key, run_off, run_tab,
                                 local)
+            g0 = run_off[run_key[i]] if mode == 1 else 0
             o = offsets[i]
             cap = offsets[i + 1] - o
             cnt = 0
@@ -391,8 +499,13 @@ def _fire(pix, order, s, idx, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pi
                 elif d != 0:
                     up = d > 0
                     lvl = thi if up else tlo
-                    j = _first(rows, ra, rb, xa, xb, k + 1, b, chi if up else clo, up,
-                               _val(rows, ra, rb, xa, xb, k))
+                    if mode == 1:
+                        j = _first_indexed(rows, ra, rb, xa, xb, k + 1, b, chi if up else clo,
+                                           up, _val(rows, ra, rb, xa, xb, k), g0 + r, inv_off,
+                                           inv_lvl, inv_tab)
+                    else:
+                        j = _first(rows, ra, rb, xa, xb, k + 1, b, chi if up else clo, up,
+                                   _val(rows, ra, rb, xa, xb, k))
                     if j <= b:
                         found = True
                         if j - 1 == k:
@@ -603,6 +716,13 @@ def fire_cycle(
     rk = run_key if run_key is not None else np.zeros(1, dtype=np.int64)
     ro = run_off if run_off is not None else np.zeros(2, dtype=np.int64)
     rt = run_tab if run_tab is not None else np.zeros((1, 3), dtype=np.int64)
+    if mode == 1:
+        assert run_key is not None and run_off is not None and run_tab is not None
+        inv_off, inv_lvl, inv_tab = level_index(rows, ia, ib, run_key, run_off, run_tab)
+    else:
+        inv_off = np.zeros(2, dtype=np.int64)
+        inv_lvl = np.zeros((1, 2))
+        inv_tab = np.zeros((1, 2), dtype=np.int32)
     order = _block_order(n, _BLOCK)
     idx = (np.searchsorted(s, np.arange(math.ceil(float(s[-1])) + 1, dtype=np.float64),
                            side="right") - 1).astype(np.int64)
@@ -623,7 +743,8 @@ def fire_cycle(
         overflow = np.zeros(n, dtype=np.int8)
         lost = np.empty(n, dtype=np.int64)
         _fire(pix, order, s, idx, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pcs, rk, ro, rt,
-              c_on, c_off, state.ref, state.ready, state.pending, state.pending_z, alive,
+              inv_off, inv_lvl, inv_tab, c_on, c_off, state.ref, state.ready, state.pending,
+              state.pending_z, alive,
               noise_off, noise_t, noise_pol, np.uint64(seed), np.int64(cycle),
               float(reset_noise_sigma), float(refractory_us), float(latency_us),
               float(jitter_sigma_us), float(period_us), offsets, slot_t, slot_p, counts,
