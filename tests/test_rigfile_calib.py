@@ -103,6 +103,46 @@ def test_thresholds_from_flats_recover_simulated_thresholds(caplog) -> None:
     assert "readout delayed" in caplog.text
 
 
+def test_flat_fields_find_the_dead_pixels_and_ml_fills_them() -> None:
+    # an IMX636 with 3 % dead pixels: the flat fields' calibration names exactly the
+    # simulator's dead pixels; ml on a flat scene by the same sensor leaves them NaN without
+    # the map and, with it, gives each the median of its neighbours (the flat's radiance,
+    # where every other estimate lies) and flags it; the other pixels do not change
+    from asynhdr.ml import FLAG_FILLED, FLAG_NO_EVENTS
+    from asynhdr.reconstruct import reconstruct
+    from asynhdr.sensor.noise import draw_defects
+
+    rig = default_rig("imx636")
+    sensor = get_preset("imx636").with_(dead_pixel_fraction=0.03)
+    roi = sensor.region_of_interest()
+    w, h = 16, 12
+    rads = [rig.l_const * 30, rig.l_const / 30]
+    caps = [simulate(flat_field(width=w, height=h, radiance=r), rig=rig, sensor=roi,
+                     n_cycles=3, rng=i, sensor_seed=5) for i, r in enumerate(rads)]
+    cal = thresholds_from_flats(caps, radiance=rads, rig=rig, sensor=sensor)
+    g = np.random.default_rng(5)
+    draw_thresholds(sensor, width=w, height=h, rng=g)  # the simulator's order of draws
+    truth = np.zeros(w * h, dtype=bool)
+    truth[draw_defects(sensor, n_pixels=w * h, rng=g).dead] = True
+    assert cal.defects is not None
+    assert truth.sum() == 6
+    np.testing.assert_array_equal(cal.defects.ravel(), truth)
+    assert cal.how["dead_pixels"] == 6
+    lum = 2000.0
+    rec = simulate(flat_field(width=w, height=h, radiance=lum), rig=rig, sensor=roi,
+                   n_cycles=2, rng=9, sensor_seed=5)
+    out: dict = {}
+    plain = reconstruct(rec, method="ml", ml_options={"thresholds": cal.threshold_maps()})[-1]
+    filled = reconstruct(rec, method="ml", ml_options={
+        "thresholds": cal.threshold_maps(), "defects": cal.defects, "out": out})[-1]
+    dead = cal.defects
+    assert np.isnan(plain[dead]).all() and np.isfinite(plain[~dead]).all()
+    np.testing.assert_array_equal(filled[~dead], plain[~dead])
+    assert np.all(np.abs(filled[dead] / lum - 1.0) < 0.05)
+    assert np.all(out["flags"][-1][dead] == FLAG_NO_EVENTS | FLAG_FILLED)
+    assert np.isnan(out["sigma_log"][-1][dead]).all()
+
+
 def test_calibration_file_round_trip(tmp_path: Path) -> None:
     rng = np.random.default_rng(0)
     sweep = simulate_sweep((tn_panel(normally_white=True), tn_panel(normally_white=False)),
@@ -113,11 +153,13 @@ def test_calibration_file_round_trip(tmp_path: Path) -> None:
                       sigma_off=np.full((4, 5), 0.003, np.float32),
                       response=fit_response([1.0, 2.1, 3.9], [1.0, 2.0, 4.0]),
                       panel_curves=fit_panel_curves(sweep), sensor=get_preset("davis346"),
-                      how={"kind": "test", "n": 3})
+                      defects=rng.random((4, 5)) < 0.3, how={"kind": "test", "n": 3})
     p = write_calibration(tmp_path / "cal.npz", cal)
     back = read_calibration(p)
     np.testing.assert_array_equal(back.c_on, cal.c_on)
     np.testing.assert_array_equal(back.sigma_off, cal.sigma_off)
+    assert back.defects is not None and back.defects.dtype == bool
+    np.testing.assert_array_equal(back.defects, cal.defects)
     assert back.sensor == get_preset("davis346")
     assert back.how == {"kind": "test", "n": 3}
     assert back.response is not None
@@ -304,6 +346,7 @@ def test_cli_calibrate_thresholds_then_reconstruct_with_calibration(tmp_path: Pa
     res = runner.invoke(app, ["calibrate-thresholds", *flats, "--radiance", str(lc * 30),
                               "--radiance", str(lc / 30), "--rig", str(rig), "-o", str(cal)])
     assert res.exit_code == 0, res.output
+    assert "0 dead pixels (no event in any cycle)" in " ".join(res.output.split())
     back = read_calibration(cal)
     c_on, c_off = draw_thresholds(get_preset("imx636"), width=12, height=8,
                                   rng=np.random.default_rng(1))
@@ -319,6 +362,7 @@ def test_cli_calibrate_thresholds_then_reconstruct_with_calibration(tmp_path: Pa
                               "--method", "ml", "--calibration", str(cal), "--formats", "exr"])
     assert res.exit_code == 0, res.output
     assert "no --calibration" not in res.output
+    assert "0 dead pixels in the calibration; 0 of them filled" in " ".join(res.output.split())
     img = read_image(tmp_path / "img" / "scene_ml_0001.exr")
     assert abs(float(np.nanmedian(img)) / 2000.0 - 1.0) < 0.03
     # without it, ml says what it did and what calibration would add

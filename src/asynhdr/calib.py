@@ -12,6 +12,9 @@
   have a variance inversely proportional to its weight). A pixel fires ON and OFF events in a cycle
   when its signal falls and then rises: with the cross-fading rig of ``asynhdr design``
   that is every pixel near ``L_const``, the default flat radiance.
+- **Dead pixels** from the same flat fields: those that fired no event in any cycle while
+  the typical pixel fired several (:func:`asynhdr.defects.dead_pixels`); ``ml`` fills them
+  from their neighbours, flagged.
 - **Thresholds from a capture's own events**: ``ml`` fits ``c_on`` and ``c_off`` with the
   radiance (:class:`asynhdr.ml.MlResult`); where a pixel's events identify them (both
   polarities, several events of each) their posterior is narrower than the prior.
@@ -51,6 +54,7 @@ from typing import Any
 
 import numpy as np
 
+from asynhdr.defects import dead_pixels
 from asynhdr.events import Recording
 from asynhdr.panel import Panel, PanelCurve, calibrate_curve
 from asynhdr.rig import Rig
@@ -120,6 +124,8 @@ class Calibration:
     ----------
     c_on, c_off : float32 ``(height, width)`` per-pixel thresholds (log units), or None.
     sigma_on, sigma_off : their stated errors (same shape), or None.
+    defects : bool ``(height, width)``, the dead pixels (no event in any flat-field cycle;
+        :func:`asynhdr.defects.dead_pixels`), or None.
     response : a :class:`Response`, or None.
     panel_curves : ``{"1": PanelCurve, "2": PanelCurve}`` fitted to a sweep (either may be
         missing).
@@ -131,6 +137,7 @@ class Calibration:
     c_off: np.ndarray | None = None
     sigma_on: np.ndarray | None = None
     sigma_off: np.ndarray | None = None
+    defects: np.ndarray | None = None
     response: Response | None = None
     panel_curves: dict[str, PanelCurve] = field(default_factory=dict)
     sensor: SensorParams | None = None
@@ -204,6 +211,7 @@ def thresholds_from_flats(
     # events of the polarity, which is what identifies the threshold)
     vals: list[list[np.ndarray]] = [[], []]  # per polarity: each cycle's estimates
     wts: list[list[np.ndarray]] = [[], []]  # and their weights
+    fired = np.zeros((h, w), dtype=np.int64)  # events per pixel over the cycles used
     n_cycles = 0
     for cap, lf in zip(caps, rads, strict=True):
         if (cap.height, cap.width) != (h, w):
@@ -221,6 +229,7 @@ def thresholds_from_flats(
         for c in range(starts.size):
             ok = res.flags[c] == 0
             n_on, n_off = _polarity_counts(cap, int(starts[c]), model.window_us, w, h)
+            fired += n_on + n_off
             for k, (n_p, cc) in enumerate(((n_on, res.c_on[c]), (n_off, res.c_off[c]))):
                 wts[k].append(np.where(ok, np.maximum(n_p - 1, 0), 0).astype(np.float64))
                 vals[k].append(cc.astype(np.float64))
@@ -253,16 +262,19 @@ def thresholds_from_flats(
         out.append((mean.astype(np.float32), err.astype(np.float32)))
         counts.append(sw)
     n1, n2 = counts
+    dead = dead_pixels(fired)
     how = {"kind": "thresholds from flat fields", "captures": len(caps),
            "cycles": n_cycles, "flat_radiance": rads, "prior_sigma": prior_sigma,
            "median_error_on": float(np.median(out[0][1])),
            "median_error_off": float(np.median(out[1][1])),
            "pixels_without_on": int(np.count_nonzero(n1 == 0)),
-           "pixels_without_off": int(np.count_nonzero(n2 == 0))}
+           "pixels_without_off": int(np.count_nonzero(n2 == 0)),
+           "dead_pixels": int(np.count_nonzero(dead)),
+           "median_events_per_pixel": float(np.median(fired))}
     logger.info("thresholds from %d flat fields (%d cycles): median error ON %.4f, OFF %.4f",
                 len(caps), n_cycles, how["median_error_on"], how["median_error_off"])
     return Calibration(c_on=out[0][0], c_off=out[1][0], sigma_on=out[0][1],
-                       sigma_off=out[1][1], sensor=sensor, how=how)
+                       sigma_off=out[1][1], defects=dead, sensor=sensor, how=how)
 
 
 def _starts(rec: Recording, rig: Rig) -> np.ndarray:

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from asynhdr.calib import flat_capture_sensor
+from asynhdr.calib import Calibration, flat_capture_sensor
 from asynhdr.calibrate import CMap
 from asynhdr.events import Recording
 from asynhdr.experiments import _cmaps_from_flats, finite_image
@@ -41,6 +41,7 @@ from asynhdr.framecam import (
 )
 from asynhdr.mef import fuse_frames
 from asynhdr.metrics import ImageComparison, compare_images
+from asynhdr.ml import FLAG_FILLED
 from asynhdr.reconstruct import DEFAULT_K, reconstruct
 from asynhdr.rig import Rig
 from asynhdr.scene import Scene, exposure_scale, flat_field, from_radiance_map, log_average
@@ -126,10 +127,10 @@ def calibrate_for_scenes(*, width: int, height: int, sensor: SensorParams | str,
 
 def calibrate_thresholds_for_scenes(*, width: int, height: int, sensor: SensorParams | str,
                                     rig: Rig | None = None, sensor_seed: int = 1,
-                                    seed: int = 300, engine: str = "exact"
-                                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per-pixel ON and OFF thresholds for ``ml`` (:func:`asynhdr.calib.thresholds_from_flats`)
-    from flat fields 30x above and below ``L_const``, two of each, three cycles each."""
+                                    seed: int = 300, engine: str = "exact") -> Calibration:
+    """Per-pixel ON and OFF thresholds and the dead pixels, for ``ml``
+    (:func:`asynhdr.calib.thresholds_from_flats`), from flat fields 30x above and below
+    ``L_const``, two of each, three cycles each."""
     from asynhdr.calib import thresholds_from_flats
 
     rig = rig or Rig()
@@ -141,10 +142,7 @@ def calibrate_thresholds_for_scenes(*, width: int, height: int, sensor: SensorPa
                      sensor=roi, n_cycles=3, rng=np.random.default_rng(sq),
                      sensor_seed=sensor_seed, engine=engine) for r, sq in zip(rads, seeds,
                                                                               strict=True)]
-    cal = thresholds_from_flats(caps, radiance=rads, rig=rig, sensor=sensor)
-    thr = cal.threshold_maps()
-    assert thr is not None
-    return thr
+    return thresholds_from_flats(caps, radiance=rads, rig=rig, sensor=sensor)
 
 
 def evaluate_scene(
@@ -157,7 +155,7 @@ def evaluate_scene(
     rig: Rig | None = None,
     scale: float | None = None,
     cmap: CMap | None = None,
-    ml_thresholds: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    ml_calibration: Calibration | None = None,
     n_cycles: int = 2,
     methods: Sequence[str] = DEFAULT_SCENE_METHODS,
     k: float = DEFAULT_K,
@@ -170,8 +168,8 @@ def evaluate_scene(
 ) -> SceneEvaluation:
     """Evaluate one scene (see the module's text). ``cmap``: from
     :func:`calibrate_for_scenes` for the same sensor (made here when not given).
-    ``ml_thresholds``: per-pixel ``(c_on, c_off, sigma)`` for ``ml``
-    (:func:`calibrate_thresholds_for_scenes`); without them ``ml`` uses the c-map."""
+    ``ml_calibration``: per-pixel thresholds and dead pixels for ``ml``
+    (:func:`calibrate_thresholds_for_scenes`); without it ``ml`` uses the c-map."""
     rig = rig or Rig()
     sensor = get_preset(sensor) if isinstance(sensor, str) else sensor
     cam = get_frame_camera(frame_camera) if isinstance(frame_camera, str) else frame_camera
@@ -200,14 +198,22 @@ def evaluate_scene(
                    rng=np.random.default_rng(gen[0]), sensor_seed=sensor_seed, engine=engine,
                    progress=lambda _s, d, t: tick(f"{name}: simulate", d, t))
     images: dict[str, np.ndarray] = {}
+    ml_out: dict[str, Any] = {}
+    holes: dict[str, int] = {}
     for i, m in enumerate(methods):
-        if m == "ml" and ml_thresholds is not None:  # per-pixel ON and OFF thresholds
-            img = reconstruct(rec, method=m, ml_options={"thresholds": ml_thresholds})[-1]
+        if m == "ml" and ml_calibration is not None:  # per-pixel thresholds, dead pixels
+            opts = {"thresholds": ml_calibration.threshold_maps(),
+                    "defects": ml_calibration.defects, "out": ml_out}
+            img = reconstruct(rec, method=m, ml_options=opts)[-1]
         else:
             img = reconstruct(rec, method=m, k=k, cmap=cmap)[-1]
+        holes[m] = int(np.count_nonzero(valid & ~np.isfinite(img)))
         images[m] = finite_image(img, name=f"{name} {m}")[0]
         tick(f"{name}: reconstruct", i + 1, len(methods))
     n_events = int(rec.events.size)
+    filled = 0
+    if "flags" in ml_out:
+        filled = int(np.count_nonzero(valid & (ml_out["flags"][-1] & FLAG_FILLED != 0)))
     del rec
 
     inside = truth[valid]
@@ -249,7 +255,8 @@ def evaluate_scene(
         else None, "log_average_lux": log_average(inside), "max_lux": l_max,
         "p0.1_lux": l_min, "span_stops": span,
         "sensor": sensor.name, "rig": rig.to_metadata(), "n_cycles": n_cycles, "k": k,
-        "n_events": n_events, "frame_camera": cam.to_metadata(),
+        "n_events": n_events, "holes": holes, "ml_dead_pixels_filled": filled,
+        "frame_camera": cam.to_metadata(),
         "exposures_s": full.tolist(), "budget_exposures_s": short.tolist(),
         "auto_exposure_s": t_auto, "seed": seed, "sensor_seed": sensor_seed,
     }

@@ -53,7 +53,9 @@ pixels whose estimate is uncertain to a factor e or more (:data:`FLAG_UNINFORMED
 whose estimate reaches a bound of the model's radiance range are flagged
 :data:`FLAG_OUT_OF_RANGE` and hold the bound (brighter than the range: its top, as a
 camera's saturated pixel; darker: its bottom); their standard deviation is NaN. The mask
-(:attr:`MlResult.mask`) is False for all three.
+(:attr:`MlResult.mask`) is False for all three. With a calibration's map of dead pixels
+(:mod:`asynhdr.defects`), :func:`reconstruct_ml` fills the dead ones from their measured
+neighbours and adds :data:`FLAG_FILLED`.
 """
 
 from __future__ import annotations
@@ -67,6 +69,7 @@ from typing import Any
 import numba as nb
 import numpy as np
 
+from asynhdr.defects import fill_defects
 from asynhdr.events import Recording
 from asynhdr.rig import Rig
 from asynhdr.sensor.params import SensorParams
@@ -74,6 +77,7 @@ from asynhdr.sensor.photoreceptor import Lowpass, lowpass_rows, time_grid
 
 __all__ = [
     "DEFAULT_DLOG",
+    "FLAG_FILLED",
     "FLAG_NO_EVENTS",
     "FLAG_OUT_OF_RANGE",
     "FLAG_UNINFORMED",
@@ -113,6 +117,9 @@ bound, as a saturated pixel of a camera holds its full scale; no standard deviat
 FLAG_UNINFORMED = 4
 """Flag: the estimate's standard deviation of ``ln L`` is 1 or more (the events fix ``L``
 to no better than a factor e: a plateau of the likelihood): NaN, the deviation kept."""
+FLAG_FILLED = 8
+"""Flag (with :data:`FLAG_NO_EVENTS`): a dead pixel of the calibration's map, given the
+median of its measured neighbours (:func:`asynhdr.defects.fill_defects`); no deviation."""
 
 _MAX_ITER = 16
 _TOL_G = 1e-3
@@ -1250,7 +1257,7 @@ class MlResult:
         or information, the range's bound where the estimate reached it.
     sigma_log : float32 standard deviation of ``ln L`` (the bound at the estimate).
     flags : uint8, 0 (estimated), :data:`FLAG_NO_EVENTS`, :data:`FLAG_OUT_OF_RANGE`,
-        :data:`FLAG_UNINFORMED`.
+        :data:`FLAG_UNINFORMED`; :func:`reconstruct_ml` adds :data:`FLAG_FILLED`.
     c_on, c_off : float32 the thresholds fitted with the radiance (their priors where no
         event constrains them).
     n_events : int32 events used per pixel.
@@ -1474,6 +1481,7 @@ def reconstruct_ml(
     threshold: float | None = None,
     sensor: SensorParams | None = None,
     thresholds: tuple[np.ndarray, np.ndarray, np.ndarray | float] | None = None,
+    defects: np.ndarray | None = None,
     out: dict[str, Any] | None = None,
     min_events: int | None = None,
     settled_start: bool = False,
@@ -1485,8 +1493,10 @@ def reconstruct_ml(
     (default :func:`sensor_of` the recording). ``thresholds``: calibrated ``(c_on, c_off,
     sigma)`` maps (a calibration file); else a c-map ``cmap`` scales the nominal
     thresholds (spread 0.01), else the nominal ones with the sensor's mismatch as their
-    spread. ``out`` receives ``sigma_log``, ``flags``, ``c_on``, ``c_off`` and
-    ``n_events`` (:class:`MlResult`'s fields). ``settled_start``: the pixels start the
+    spread. ``defects``: a calibration's map of dead pixels ``(height, width)``: those
+    without an estimate get the median of their measured neighbours
+    (:data:`FLAG_FILLED`). ``out`` receives ``sigma_log``, ``flags``, ``c_on``, ``c_off``
+    and ``n_events`` (:class:`MlResult`'s fields). ``settled_start``: the pixels start the
     window at rest on their reference (a single ramp from a closed shutter): the start
     offset is then known to the reset noise (or 0.02) and one event suffices.
     """
@@ -1515,6 +1525,13 @@ def reconstruct_ml(
     n_min = (1 if settled_start else 2) if min_events is None else int(min_events)
     res = estimate(ev, width=w, height=h, starts_us=windows.start_us, model=model,
                    priors=priors, min_events=n_min, start_sigma=start_sigma)
+    if defects is not None:
+        dead = np.asarray(defects, dtype=bool)
+        if dead.shape != (h, w):
+            raise ValueError(f"ml: the defect map is {dead.shape}, the recording {(h, w)}")
+        for c in range(res.radiance.shape[0]):
+            res.radiance[c], filled = fill_defects(res.radiance[c], dead)
+            res.flags[c][filled] |= FLAG_FILLED
     if out is not None:
         out.update(sigma_log=res.sigma_log, flags=res.flags, c_on=res.c_on, c_off=res.c_off,
                    n_events=res.n_events)

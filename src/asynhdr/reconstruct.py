@@ -664,8 +664,8 @@ def reconstruct(
     rig : the rig (default: the recording's metadata), e.g. from a rig file
         (:mod:`asynhdr.io.rigfile`).
     ml_options : for ``ml``: keyword options of :func:`asynhdr.ml.reconstruct_ml`
-        (``sensor``, ``thresholds``, ``settled_start``, ``out``: a dict that receives the
-        uncertainty and the flags).
+        (``sensor``, ``thresholds``, ``defects``, ``settled_start``, ``out``: a dict that
+        receives the uncertainty and the flags).
 
     Returns
     -------

@@ -100,7 +100,7 @@ def _run_scenes(files: list[Path], out: Path, *, width: int, height: int, preset
     if rig is not None and "ml" in (methods or ("ml",)):
         from asynhdr.evaluate import calibrate_thresholds_for_scenes
 
-        more["ml_thresholds"] = calibrate_thresholds_for_scenes(
+        more["ml_calibration"] = calibrate_thresholds_for_scenes(
             width=width, height=height, sensor=preset, rig=rig, sensor_seed=sensor_seed)
     summaries: list[dict[str, Any]] = []
     figures: dict[str, str] = {}

@@ -32,9 +32,11 @@ def calibrate_thresholds(
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing file."),
 ) -> None:
     """Fit every pixel's ON and OFF thresholds to flat fields of known radiance (ml with the
-    radiance held; docs/ml.md), with their stated errors, and write them with a record of
-    how they were made."""
-    from asynhdr.calib import Calibration, fit_panel_curves, read_sweep_csv, thresholds_from_flats
+    radiance held; docs/ml.md), with their stated errors, find the dead pixels (no event in
+    any cycle), and write them with a record of how they were made."""
+    import dataclasses
+
+    from asynhdr.calib import fit_panel_curves, read_sweep_csv, thresholds_from_flats
     from asynhdr.io import open_recording
     from asynhdr.io.calibration import write_calibration
     from asynhdr.io.rigfile import read_rig
@@ -63,9 +65,7 @@ def calibrate_thresholds(
         cal.how["sources"] = [str(f) for f in flats]
         cal.how["rig_file"] = str(rig)
         if sweep is not None:
-            cal = Calibration(c_on=cal.c_on, c_off=cal.c_off, sigma_on=cal.sigma_on,
-                              sigma_off=cal.sigma_off, sensor=cal.sensor, how=cal.how,
-                              panel_curves=fit_panel_curves(read_sweep_csv(sweep)))
+            cal = dataclasses.replace(cal, panel_curves=fit_panel_curves(read_sweep_csv(sweep)))
             cal.how["sweep"] = str(sweep)
         write_calibration(out, cal)
     except (ValueError, OSError) as exc:
@@ -76,6 +76,7 @@ def calibrate_thresholds(
         f"({cal.how['cycles']} cycles): ON {float(np.mean(cal.c_on)):.4f} +- "
         f"{float(np.std(cal.c_on)):.4f}, OFF {float(np.mean(cal.c_off)):.4f} +- "
         f"{float(np.std(cal.c_off)):.4f} (mismatch); median stated error ON "
-        f"{cal.how['median_error_on']:.4f}, OFF {cal.how['median_error_off']:.4f}"
+        f"{cal.how['median_error_on']:.4f}, OFF {cal.how['median_error_off']:.4f}; "
+        f"{cal.how['dead_pixels']:,} dead pixels (no event in any cycle)"
         + (f"; panel curves {sorted(cal.panel_curves)}" if cal.panel_curves else "")
         + f" -> {out}")

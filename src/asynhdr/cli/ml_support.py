@@ -4,7 +4,8 @@ For ``--method ml`` each cycle writes, beside the radiance image (NaN where a pi
 information; the range's bound where the estimate reached it), ``<stem>_sigma.<ext>``:
 the standard deviation of ``ln L`` per pixel (the model's bound at the estimate), in the
 first float format asked for (``.exr`` by default), and ``<stem>_valid.png``: 255 where
-the pixel has an estimate inside the model's range, 0 where not.
+the pixel has an estimate inside the model's range, 0 where not. A calibration file's dead
+pixels are filled from their neighbours (and are 0 in ``_valid.png``).
 """
 
 from __future__ import annotations
@@ -29,11 +30,13 @@ class MlOutputs:
 
     def __init__(self, *, rig: Rig | None, sensor: SensorParams | None, unit: str | None,
                  thresholds: tuple[np.ndarray, np.ndarray, np.ndarray] | None, method: str,
-                 formats: list[str]) -> None:
+                 formats: list[str], defects: np.ndarray | None = None) -> None:
         self.rig = rig
         self.sensor = sensor
         self.unit = unit
         self.thresholds = thresholds
+        self.defects = defects
+        self.filled = 0  # dead pixels filled in the last cycle written
         self.active = method == "ml"
         self.formats = formats
         self.extra: dict[str, Any] = {}
@@ -41,7 +44,7 @@ class MlOutputs:
     @classmethod
     def open(cls, rig_path: Path | None, calibration: Path | None, *, method: str,
              formats: list[str], fail: Callable[[str], None]) -> MlOutputs:
-        rig = sensor = unit = thr = None
+        rig = sensor = unit = thr = dead = None
         try:
             if rig_path is not None:
                 from asynhdr.io.rigfile import read_rig
@@ -55,19 +58,21 @@ class MlOutputs:
                 thr = cal.threshold_maps()
                 if thr is None:
                     fail(f"{calibration}: holds no per-pixel thresholds")
+                dead = cal.defects
                 if sensor is None and cal.sensor is not None:
                     sensor = cal.sensor
         except (ValueError, OSError) as exc:
             fail(str(exc))
         return cls(rig=rig, sensor=sensor, unit=unit, thresholds=thr, method=method,
-                   formats=formats)
+                   formats=formats, defects=dead)
 
     @property
     def options(self) -> dict[str, Any] | None:
         """``ml_options`` for :func:`asynhdr.reconstruct.reconstruct`."""
         if not self.active:
             return None
-        return {"sensor": self.sensor, "thresholds": self.thresholds, "out": self.extra}
+        return {"sensor": self.sensor, "thresholds": self.thresholds,
+                "defects": self.defects, "out": self.extra}
 
     def write(self, stem: Path, img: np.ndarray, meta: dict[str, Any], *,
               tonemap: str) -> None:
@@ -87,7 +92,9 @@ class MlOutputs:
         import cv2
 
         from asynhdr._atomic import atomic_path
+        from asynhdr.ml import FLAG_FILLED
 
+        self.filled = int(np.count_nonzero(flags[0] & FLAG_FILLED))
         valid = np.where(flags[0] == 0, 255, 0).astype(np.uint8)
         with atomic_path(Path(f"{stem}_valid.png")) as tmp:
             if not cv2.imwrite(str(tmp), valid):

@@ -158,6 +158,10 @@ def reconstruct(
                  "to RGB")
     console.print(f"{written} image{'s' if written != 1 else ''} ({method}) from "
                   f"{plan.n_events:,} events, one cycle at a time -> {out}/{note}")
+    if mlo.active and mlo.defects is not None:
+        console.print(f"ml: {int(mlo.defects.sum()):,} dead pixels in the calibration; "
+                      f"{mlo.filled:,} of them filled from their neighbours in the last image "
+                      "(0 in _valid.png)")
     if method == "ml" and calibration is None:
         from asynhdr.ml import sensor_of
 

@@ -2,7 +2,8 @@
 and a JSON record of how they were made.
 
 Arrays (each optional): ``c_on``, ``c_off``, ``sigma_on``, ``sigma_off`` (float32
-``(height, width)``, log units); ``response_x``, ``response_y`` (``ln`` of estimated and
+``(height, width)``, log units); ``defects`` (uint8 ``(height, width)``, 1 for a dead
+pixel); ``response_x``, ``response_y`` (``ln`` of estimated and
 true radiance); ``panel1_v``, ``panel1_t``, ``panel2_v``, ``panel2_t`` (the fitted static
 curves: voltage in V, transmittance). Strings: ``format`` (``"asynhdr-calibration"``),
 ``version`` (1), ``how`` (JSON: inputs, radiances, counts, stated errors), ``sensor``
@@ -43,6 +44,8 @@ def write_calibration(path: str | os.PathLike[str], cal: Calibration) -> Path:
         a = getattr(cal, name)
         if a is not None:
             arrays[name] = np.asarray(a, dtype=np.float32)
+    if cal.defects is not None:
+        arrays["defects"] = np.asarray(cal.defects, dtype=np.uint8)
     if cal.response is not None:
         arrays["response_x"] = cal.response.x
         arrays["response_y"] = cal.response.y
@@ -84,6 +87,15 @@ def read_calibration(path: str | os.PathLike[str]) -> Calibration:
             if not np.all(np.isfinite(a)) or (name.startswith("c_") and np.any(a <= 0)):
                 raise ValueError(f"{p}: {name} must be finite (and thresholds positive)")
         out[name] = a
+    defects = None
+    if "defects" in get:
+        d = get["defects"]
+        if d.ndim != 2 or (shape is not None and d.shape != shape):
+            raise ValueError(f"{p}: defects must be (height, width) like the threshold maps "
+                             f"{shape}, got {d.shape}")
+        if not np.isin(d, (0, 1)).all():
+            raise ValueError(f"{p}: defects must hold 0 (working) or 1 (dead)")
+        defects = d.astype(bool)
     resp = None
     if "response_x" in get and "response_y" in get:
         resp = Response(np.asarray(get["response_x"], np.float64),
@@ -97,5 +109,5 @@ def read_calibration(path: str | os.PathLike[str]) -> Calibration:
     sensor = SensorParams.from_metadata(sensor_d) if isinstance(sensor_d, dict) else None
     how = json.loads(str(get["how"])) if "how" in get else {}
     return Calibration(c_on=out["c_on"], c_off=out["c_off"], sigma_on=out["sigma_on"],
-                       sigma_off=out["sigma_off"], response=resp, panel_curves=curves,
-                       sensor=sensor, how=how)
+                       sigma_off=out["sigma_off"], defects=defects, response=resp,
+                       panel_curves=curves, sensor=sensor, how=how)
