@@ -199,7 +199,6 @@ def evaluate_scene(
                    progress=lambda _s, d, t: tick(f"{name}: simulate", d, t))
     images: dict[str, np.ndarray] = {}
     ml_out: dict[str, Any] = {}
-    holes: dict[str, int] = {}
     for i, m in enumerate(methods):
         if m == "ml" and ml_calibration is not None:  # per-pixel thresholds, dead pixels
             opts = {"thresholds": ml_calibration.threshold_maps(),
@@ -207,7 +206,6 @@ def evaluate_scene(
             img = reconstruct(rec, method=m, ml_options=opts)[-1]
         else:
             img = reconstruct(rec, method=m, k=k, cmap=cmap)[-1]
-        holes[m] = int(np.count_nonzero(valid & ~np.isfinite(img)))
         images[m] = finite_image(img, name=f"{name} {m}")[0]
         tick(f"{name}: reconstruct", i + 1, len(methods))
     n_events = int(rec.events.size)
@@ -255,7 +253,7 @@ def evaluate_scene(
         else None, "log_average_lux": log_average(inside), "max_lux": l_max,
         "p0.1_lux": l_min, "span_stops": span,
         "sensor": sensor.name, "rig": rig.to_metadata(), "n_cycles": n_cycles, "k": k,
-        "n_events": n_events, "holes": holes, "ml_dead_pixels_filled": filled,
+        "n_events": n_events, "ml_dead_pixels_filled": filled,
         "frame_camera": cam.to_metadata(),
         "exposures_s": full.tolist(), "budget_exposures_s": short.tolist(),
         "auto_exposure_s": t_auto, "seed": seed, "sensor_seed": sensor_seed,
