@@ -977,6 +977,20 @@ def _held_thresholds(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a
 
 
 @nb.njit(cache=True)
+def _fit_from(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
+              dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp, skip,
+              skip2, h, bvec, x, lmat, wy, wz, stat, res, st_o):
+    """Gauss-Newton from ``g`` (:func:`_gauss_newton`, into ``res`` and ``stat``), guarded
+    by :func:`_held_thresholds`."""
+    _gauss_newton(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
+                  dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp,
+                  np.int64(_MAX_ITER), skip, skip2, h, bvec, x, lmat, wy, wz, stat, res)
+    _held_thresholds(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
+                     g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp,
+                     skip, skip2, h, bvec, x, lmat, wy, wz, stat, res, st_o)
+
+
+@nb.njit(cache=True)
 def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
                dlog, locate, wmax, g_lo, g_hi, net_g, net_v, c1, c2, s1, s2, gp, sgp,
                fixed, h, bvec, x, lmat, wy, wz, out, u_sd, stat, res, scan, split, st_o,
@@ -1039,14 +1053,9 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
                 if abs(g2 - g) > 0.02:
                     g_other = g2
         if g_other == g_other:
-            _gauss_newton(g_other, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
-                          v0b, rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1,
-                          s2, su, mu_u, gp, sgp, np.int64(_MAX_ITER), skip, skip2, h, bvec, x,
-                          lmat, wy, wz, stat, res)
-            _held_thresholds(g_other, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact,
-                             v0a, v0b, rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2,
-                             s1, s2, su, mu_u, gp, sgp, skip, skip2, h, bvec, x, lmat, wy, wz,
-                             stat, res, st_o)
+            _fit_from(g_other, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
+                      rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp,
+                      sgp, skip, skip2, h, bvec, x, lmat, wy, wz, stat, res, st_o)
             o_other = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
                                v0b, rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su,
                                mu_u, skip, skip2, h, bvec, st_o)
@@ -1054,12 +1063,9 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
                 saved[c] = res[c]
             for c in range(5):
                 saved[6 + c] = stat[c]
-        _gauss_newton(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
-                      g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp,
-                      sgp, np.int64(_MAX_ITER), skip, skip2, h, bvec, x, lmat, wy, wz, stat, res)
-        _held_thresholds(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
-                         rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su,
-                         mu_u, gp, sgp, skip, skip2, h, bvec, x, lmat, wy, wz, stat, res, st_o)
+        _fit_from(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
+                  dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp, skip,
+                  skip2, h, bvec, x, lmat, wy, wz, stat, res, st_o)
         if g_other == g_other:
             o_this = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
                               v0b, rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su,
@@ -1094,14 +1100,9 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
                 gbest = _profile_scan(a0, step, n_g, mode, c1, c2, t, p, lo, hi, dead, sr2,
                                       tq2, eq2, exact, v0a, v0b, rows, g0, dlog, locate,
                                       wmax, mu_u, su * su, s1, s2, skip, skip2, scan)
-            _gauss_newton(gbest, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
-                          v0b, rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1,
-                          s2, su, mu_u, gp, sgp, np.int64(_MAX_ITER), skip, skip2, h, bvec, x,
-                          lmat, wy, wz, stat, res)
-            _held_thresholds(gbest, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
-                             v0b, rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1,
-                             s2, su, mu_u, gp, sgp, skip, skip2, h, bvec, x, lmat, wy, wz, stat,
-                             res, st_o)
+            _fit_from(gbest, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
+                      rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp,
+                      sgp, skip, skip2, h, bvec, x, lmat, wy, wz, stat, res, st_o)
             obj1 = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
                             v0b, rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su, mu_u,
                             skip, skip2, h, bvec, st_o)
