@@ -475,7 +475,15 @@ def _fire(pix, order, s, idx, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pi
                 r_lvl = (v if log_domain else math.log(v)) + sigma * pz
                 pend = False
             thi, tlo = _levels(r_lvl, con, coff, log_domain)
+            zc = -1
+            zj = 0.0
+            zr = 0.0
             while True:
+                if draws and zc != cnt:
+                    # the next event's draws, before the search that does not need them:
+                    # their arithmetic overlaps its loads
+                    zj, zr = hash_normal2(seed, p, cycle, cnt)
+                    zc = cnt
                 chi = thi - _EPS if log_domain else thi * (1.0 - _EPS)
                 clo = tlo + _EPS if log_domain else tlo * (1.0 + _EPS)
                 while q < qe and nz_t[q] < t:
@@ -551,10 +559,6 @@ def _fire(pix, order, s, idx, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pi
                 if cnt >= cap:
                     overflow[i] = 1
                     break
-                zj = 0.0
-                zr = 0.0
-                if draws:
-                    zj, zr = hash_normal2(seed, p, cycle, cnt)
                 if signal:
                     tf = tc + jit_us * zj if jit_us > 0.0 else tc
                     if tf < free:
