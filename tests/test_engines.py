@@ -639,13 +639,12 @@ def test_level_ladder_finds_the_first_crossing_a_plain_scan_finds() -> None:
         g = int(rng.integers(run_tab.shape[0]))
         k0, k1, d = (int(v) for v in run_tab[g])
         v = (1.0 - w) * rows[0] + w * rows[1]
-        lo = int(rng.integers(k0, k1 + 1))
+        lo = int(rng.integers(max(k0, 1), k1 + 1))  # the kernel searches after a knot
         up = d > 0
         thr = float(rng.uniform(v[k0:k1 + 1].min() - 1.0, v[k0:k1 + 1].max() + 1.0))
         hit = [j for j in range(lo, k1 + 1) if (v[j] >= thr if up else v[j] <= thr)]
         want = hit[0] if hit else k1 + 1
-        got = pixel_mod._first_indexed(rows, 0, 1, 1.0 - w, w, lo, k1, thr, up,
-                                       v[lo - 1] if lo > 0 else v[lo], g, inv_off,
+        got = pixel_mod._first_indexed(rows, 0, 1, 1.0 - w, w, lo, k1, thr, up, g, inv_off,
                                        inv_lvl, inv_tab)
         assert got == want, (g, lo, thr, w)
         checked += bool(hit) and want > lo

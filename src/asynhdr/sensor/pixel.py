@@ -327,13 +327,13 @@ def level_index(rows: np.ndarray, ia: np.ndarray, ib: np.ndarray, run_key: np.nd
 
 
 @nb.njit(cache=True, inline="always", error_model="numpy")
-def _first_indexed(rows, ia, ib, wa, wb, lo, hi, thr, up, v_prev, g, inv_off, inv_lvl,
-                   inv_tab):
+def _first_indexed(rows, ia, ib, wa, wb, lo, hi, thr, up, g, inv_off, inv_lvl, inv_tab):
     """:func:`_first` on run ``g`` of a pair with a level ladder (:func:`level_index`):
     the same knot, bracketed by one look-up instead of secant steps."""
     inv = inv_lvl[g, 1]
     if inv == 0.0:
-        return _first(rows, ia, ib, wa, wb, lo, hi, thr, up, v_prev)
+        return _first(rows, ia, ib, wa, wb, lo, hi, thr, up,
+                      _val(rows, ia, ib, wa, wb, lo - 1))
     if _reaches(_val(rows, ia, ib, wa, wb, lo), thr, up):
         return lo
     if lo == hi:
@@ -356,7 +356,8 @@ def _first_indexed(rows, ia, ib, wa, wb, lo, hi, thr, up, v_prev, g, inv_off, in
     if not _reaches(_val(rows, ia, ib, wa, wb, b), thr, up):
         if b == hi:
             return hi + 1
-        return _first(rows, ia, ib, wa, wb, lo, hi, thr, up, v_prev)
+        return _first(rows, ia, ib, wa, wb, lo, hi, thr, up,
+                      _val(rows, ia, ib, wa, wb, lo - 1))
     if a > b:
         a = b
     return _bisect(rows, ia, ib, wa, wb, a, b, thr, up)
@@ -509,8 +510,7 @@ def _fire(pix, order, s, idx, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pi
                     lvl = thi if up else tlo
                     if mode == 1:
                         j = _first_indexed(rows, ra, rb, xa, xb, k + 1, b, chi if up else clo,
-                                           up, _val(rows, ra, rb, xa, xb, k), g0 + r, inv_off,
-                                           inv_lvl, inv_tab)
+                                           up, g0 + r, inv_off, inv_lvl, inv_tab)
                     else:
                         j = _first(rows, ra, rb, xa, xb, k + 1, b, chi if up else clo, up,
                                    _val(rows, ra, rb, xa, xb, k))
