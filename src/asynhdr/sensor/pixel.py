@@ -329,38 +329,33 @@ def level_index(rows: np.ndarray, ia: np.ndarray, ib: np.ndarray, run_key: np.nd
 @nb.njit(cache=True, inline="always", error_model="numpy")
 def _first_indexed(rows, ia, ib, wa, wb, lo, hi, thr, up, g, inv_off, inv_lvl, inv_tab):
     """:func:`_first` on run ``g`` of a pair with a level ladder (:func:`level_index`):
-    the same knot, bracketed by one look-up instead of secant steps."""
+    the same knot, bracketed by one look-up instead of secant steps (:func:`_first` itself
+    where the run has no ladder)."""
     inv = inv_lvl[g, 1]
-    if inv == 0.0:
-        return _first(rows, ia, ib, wa, wb, lo, hi, thr, up,
-                      _val(rows, ia, ib, wa, wb, lo - 1))
-    if _reaches(_val(rows, ia, ib, wa, wb, lo), thr, up):
-        return lo
-    if lo == hi:
-        return hi + 1
-    sg = 1.0 if up else -1.0
-    x = (sg * thr - inv_lvl[g, 0]) * inv
-    base = inv_off[g]
-    m = inv_off[g + 1] - base - 1
-    if x >= m + 1.0:
-        return hi + 1
-    q = np.int64(x) if x > 0.0 else np.int64(0)
-    # levels q - 1 and q + 2: one either side of thr whatever the rounding of x
-    ql = q - 1 if q >= 1 else 0
-    a = max(lo + 1, min(np.int64(inv_tab[base + ql, 0]), np.int64(inv_tab[base + ql, 1])))
-    if q + 2 <= m:
-        b = max(np.int64(inv_tab[base + q + 2, 0]), np.int64(inv_tab[base + q + 2, 1]))
-        b = min(b, hi)
-    else:
+    if inv != 0.0:
+        if _reaches(_val(rows, ia, ib, wa, wb, lo), thr, up):
+            return lo
+        if lo == hi:
+            return hi + 1
+        sg = 1.0 if up else -1.0
+        x = (sg * thr - inv_lvl[g, 0]) * inv
+        base = inv_off[g]
+        m = inv_off[g + 1] - base - 1
+        if x >= m + 1.0:
+            return hi + 1
+        q = np.int64(x) if x > 0.0 else np.int64(0)
+        # levels q - 1 and q + 2: one either side of thr whatever the rounding of x
+        ql = q - 1 if q >= 1 else 0
+        a = max(lo + 1, min(np.int64(inv_tab[base + ql, 0]), np.int64(inv_tab[base + ql, 1])))
         b = hi
-    if not _reaches(_val(rows, ia, ib, wa, wb, b), thr, up):
+        if q + 2 <= m:
+            b = min(hi, max(np.int64(inv_tab[base + q + 2, 0]),
+                            np.int64(inv_tab[base + q + 2, 1])))
+        if _reaches(_val(rows, ia, ib, wa, wb, b), thr, up):
+            return _bisect(rows, ia, ib, wa, wb, min(a, b), b, thr, up)
         if b == hi:
             return hi + 1
-        return _first(rows, ia, ib, wa, wb, lo, hi, thr, up,
-                      _val(rows, ia, ib, wa, wb, lo - 1))
-    if a > b:
-        a = b
-    return _bisect(rows, ia, ib, wa, wb, a, b, thr, up)
+    return _first(rows, ia, ib, wa, wb, lo, hi, thr, up, _val(rows, ia, ib, wa, wb, lo - 1))
 
 
 @nb.njit(cache=True, inline="always", error_model="numpy")
