@@ -297,6 +297,7 @@ def test_convert_streams_between_formats(tmp_path: Path, simulated: Recording,
     # an existing target is refused unless --overwrite, before anything is read
     r = runner.invoke(app, ["convert", str(src), str(tmp_path / "c.npz")])
     assert r.exit_code == 2 and "exists; pass --overwrite" in r.output
+    assert "\n" not in r.output.strip()  # one line, the path whole, however long it is
     with caplog.at_level(logging.WARNING):
         convert(src, tmp_path / "d.dat")
     assert "3 trigger edges left out" in caplog.text

@@ -66,8 +66,9 @@ def as_flags(msg: str) -> str:
 
 def fail(msg: str) -> NoReturn:
     """Print an error (library parameter names as this command's flags) and exit with
-    status 2."""
-    err_console.print(f"[bold red]error:[/] {as_flags(msg)}", highlight=False)
+    status 2. The message is one line, never broken by the console (a file's path in it
+    stays whole for whoever copies it or searches a log)."""
+    err_console.print(f"[bold red]error:[/] {as_flags(msg)}", highlight=False, soft_wrap=True)
     raise typer.Exit(code=2)
 
 

@@ -31,7 +31,7 @@ err_console = Console(stderr=True, width=None if sys.stderr.isatty() else 160)
 
 
 def _fail(msg: str) -> None:
-    err_console.print(f"[bold red]error:[/] {escape(msg)}")
+    err_console.print(f"[bold red]error:[/] {escape(msg)}", soft_wrap=True)
     raise typer.Exit(code=2)
 
 
