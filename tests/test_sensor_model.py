@@ -180,3 +180,56 @@ def test_every_preset_same_seed_same_events(preset: str) -> None:
 def test_bad_sensor_parameters_name_the_parameter(kwargs, match) -> None:
     with pytest.raises(ValueError, match=match):
         SensorParams(**kwargs)
+
+
+def test_the_queue_reads_one_request_per_service_time_in_arrival_order() -> None:
+    from asynhdr.sensor.noise import serve_queue
+
+    req = np.array([0, 0, 0, 5, 20], dtype=np.int64)
+    read = np.empty(req.size)
+    free_at = serve_queue(req, 2.0, -1e300, read)
+    np.testing.assert_array_equal(read, [0.0, 2.0, 4.0, 6.0, 20.0])
+    assert free_at == 22.0
+    # a busy queue carries over: the next request at 21 waits for 22
+    assert serve_queue(np.array([21]), 2.0, free_at, read[:1]) == 24.0 and read[0] == 22.0
+
+
+def test_a_pixel_waiting_for_the_readout_is_held_until_read(caplog) -> None:
+    """A DAVIS346's readout (12 Mev/s for the array; these pixels' share) cannot keep up
+    with the chart's bursts. With ``arbiter="hold"`` a pixel whose event waits is held:
+    it fires again only
+    ``refractory_us`` after its event was read, so a pixel's timestamps (its reads) are
+    never closer than that. Simulated apart (pixel ranges), pixels are not held: they fire
+    while their event waits, more events come out and some pixels' reads crowd closer than
+    the refractory period, and the log says so."""
+    from asynhdr.design import default_rig
+    from asynhdr.scene import step_chart
+    from asynhdr.simulate import finish_recording, simulate_cycles
+
+    sensor = PRESETS["davis346"].with_(name="davis346", arbiter="hold")
+    chart = step_chart(width=48, height=32)
+    kw = dict(rig=default_rig("davis346"), sensor=sensor, n_cycles=2, rng=3, sensor_seed=1)
+    held = simulate(chart, **kw)
+    npix = 48 * 32
+    with caplog.at_level("WARNING", logger="asynhdr.simulate"):
+        apart = finish_recording([simulate_cycles(chart, pixels=r, **kw)
+                                  for r in ((0, npix // 2), (npix // 2, npix))])
+    assert "fired on as if read at once" in caplog.text
+
+    def closest(rec) -> int:
+        ev = rec.events
+        pix = ev["y"].astype(np.int64) * 48 + ev["x"]
+        o = np.lexsort((ev["t"], pix))
+        same = pix[o][1:] == pix[o][:-1]
+        return int(np.diff(ev["t"][o])[same].min())
+
+    ro = held.metadata["readout"]
+    assert ro["pixels_held"] and ro["held_cycles"] == 2 and ro["max_delay_us"] > 100
+    assert closest(held) >= sensor.refractory_us
+    assert closest(apart) < sensor.refractory_us
+    assert not apart.metadata["readout"]["pixels_held"]
+    assert held.events.size < 0.95 * apart.events.size
+    # the preset's readout ("delay") fires on as if read at once: as the split one
+    free = simulate(chart, **{**kw, "sensor": PRESETS["davis346"]})
+    assert free.events.tobytes() == apart.events.tobytes()
+    assert not free.metadata["readout"]["pixels_held"]

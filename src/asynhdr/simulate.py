@@ -35,6 +35,7 @@ from asynhdr.sensor.noise import (
     draw_defects,
     merge_sorted,
     noise_arrivals,
+    serve_queue,
 )
 from asynhdr.sensor.params import SensorParams, get_preset
 from asynhdr.sensor.photoreceptor import (
@@ -48,7 +49,7 @@ from asynhdr.sensor.photoreceptor import (
     row_runs,
     time_grid,
 )
-from asynhdr.sensor.pixel import PixelState, cycle_pieces, fire_cycle, gather_sorted
+from asynhdr.sensor.pixel import CycleFiring, PixelState, cycle_pieces, fire_cycle, gather_sorted
 
 __all__ = ["ENGINES", "CycleEvents", "draw_thresholds", "finish_recording", "simulate",
            "simulate_cycles"]
@@ -266,10 +267,12 @@ class _Engine:
 
     def run_cycle(self, *, cycle: int, t_start_us: int, state: PixelState, c_on: np.ndarray,
                   c_off: np.ndarray, alive: np.ndarray, noise: NoiseArrivals, seed: int,
-                  sensor: SensorParams, t_lo: int, nbins: int, lo: int, hi: int
-                  ) -> tuple[np.ndarray, int]:
+                  sensor: SensorParams, t_lo: int, nbins: int, lo: int, hi: int,
+                  readout: HeldReadout | None = None) -> tuple[np.ndarray, int]:
         """Events of pixels ``lo .. hi - 1`` in one cycle (time-sorted, stable in pixel
-        order) and how many background arrivals met a blind pixel."""
+        order) and how many background arrivals met a blind pixel. With ``readout`` (the
+        exact engine) a pixel whose event waits for the readout is held until it is read
+        (:class:`HeldReadout`)."""
         common = dict(c_on=c_on, c_off=c_off, state=state, alive=alive, seed=seed, cycle=cycle,
                       reset_noise_sigma=sensor.reset_noise_sigma,
                       refractory_us=sensor.refractory_us, latency_us=sensor.latency_us,
@@ -278,29 +281,38 @@ class _Engine:
         sel = slice(lo, hi)
         nz = noise.select(lo, hi)
         pix = self.pix[sel]
-        if self.kind == "exact" and self.lowpass is None:
-            counts, st, sp, off, lost = fire_cycle(
-                pix, self.s, self.rows, self.ia[sel], self.ib[sel], self.wa[sel],
-                self.wb[sel], log_domain=False, pieces=self.pieces, run_key=None,
-                run_off=None, run_tab=None, noise_off=nz.offsets, noise_t=nz.t_us,
-                noise_pol=nz.polarity, **common)  # type: ignore[arg-type]
-            ev = gather_sorted(off, counts, st, sp, pix, width=self.width,
-                               t_first_us=t_start_us + t_lo, nbins=nbins)
-            return ev, lost
         if self.kind == "exact":
-            assert self.lowpass is not None
-            rows, y_end = lowpass_rows(self.grid_radiance, self.a1, self.b2, self.s, self.y,
-                                       self.lowpass)
-            self.y = y_end
-            run_off, run_tab = row_runs(rows, self.pairs, self.pairs + 1)
-            counts, st, sp, off, lost = fire_cycle(
-                pix, self.s, rows, self.ia[sel], self.ib[sel], self.wa[sel], self.wb[sel],
-                log_domain=True, pieces=None, run_key=self.run_key[sel], run_off=run_off,
-                run_tab=run_tab, noise_off=nz.offsets, noise_t=nz.t_us,
-                noise_pol=nz.polarity, **common)  # type: ignore[arg-type]
+            geometry = dict(period_us=float(self.rig.period_us), t_lo=t_lo, nbins=nbins)
+            if self.lowpass is None:
+                cyc = CycleFiring(pix, self.s, self.rows, self.ia[sel], self.ib[sel],
+                                  self.wa[sel], self.wb[sel], log_domain=False,
+                                  pieces=self.pieces, run_key=None, run_off=None,
+                                  run_tab=None, **geometry)  # type: ignore[arg-type]
+            else:
+                rows, y_end = lowpass_rows(self.grid_radiance, self.a1, self.b2, self.s,
+                                           self.y, self.lowpass)
+                self.y = y_end
+                run_off, run_tab = row_runs(rows, self.pairs, self.pairs + 1)
+                cyc = CycleFiring(pix, self.s, rows, self.ia[sel], self.ib[sel], self.wa[sel],
+                                  self.wb[sel], log_domain=True, pieces=None,
+                                  run_key=self.run_key[sel], run_off=run_off,
+                                  run_tab=run_tab, **geometry)  # type: ignore[arg-type]
+            kw = dict(c_on=c_on, c_off=c_off, state=state, alive=alive, noise_off=nz.offsets,
+                      noise_t=nz.t_us, noise_pol=nz.polarity, seed=seed, cycle=cycle,
+                      reset_noise_sigma=sensor.reset_noise_sigma,
+                      refractory_us=sensor.refractory_us, latency_us=sensor.latency_us,
+                      jitter_sigma_us=sensor.jitter_sigma_us)
+            saved = state.copy() if readout is not None else None
+            counts, st, sp, off, lost = cyc.fire(
+                noise_q=nz.offsets[:-1].copy(), **kw)  # type: ignore[arg-type]
             ev = gather_sorted(off, counts, st, sp, pix, width=self.width,
                                t_first_us=t_start_us + t_lo, nbins=nbins)
-            return ev, lost
+            if readout is None or readout.free(ev["t"]):
+                return ev, lost
+            assert saved is not None
+            state.restore(saved)
+            return readout.held_cycle(cyc, kw, nz.offsets, pix, width=self.width,
+                                      t_start_us=t_start_us)
         # stepped: each pixel's own row, a chunk of pixels at a time
         if self.frames.shape[1] > 1:
             self._set_grid(self.times_us - t_start_us)
@@ -412,6 +424,8 @@ class CycleEvents:
         pixel.
     context : what the recording's metadata says besides the counts and the readout,
         the sensor, the geometry and the triggers.
+    held_cycles : cycles fired in slices because the readout held pixels
+        (:class:`HeldReadout`).
     """
 
     pixels: tuple[int, int]
@@ -419,6 +433,97 @@ class CycleEvents:
     n_arrivals: int
     n_lost: int
     context: dict[str, Any]
+    held_cycles: int = 0
+
+
+class HeldReadout:
+    """The sensor's readout queue as the pixels see it: a pixel whose event waits is held
+    (no new reference, no new event) until the readout reads it, and its dead time runs
+    from then (``refractory_us`` after the read).
+
+    Requests are served one after the other, each ``1 / max_event_rate_hz`` (the array's
+    share for the simulated pixels), first come first served, as
+    :func:`asynhdr.sensor.noise.apply_arbiter` serves them afterwards. A cycle whose
+    events wait at most ``tolerance_us`` (the timestamp's resolution) runs with the pixels
+    independent: a pixel would be held less than that. Otherwise the cycle is fired again
+    in slices of ``refractory_us`` (a pixel fires at most once in a slice), each slice's
+    requests are read in time order, and each requesting pixel's dead time is set from
+    its read.
+    """
+
+    def __init__(self, sensor: SensorParams, n_pixels: int) -> None:
+        rate, _ = sensor.readout(n_pixels)
+        self.service_us = 1e6 / rate
+        self.step = int(sensor.timestamp_resolution_us)
+        self.slice_us = float(sensor.refractory_us)
+        self.refractory_us = float(sensor.refractory_us)
+        self.tolerance_us = float(self.step)
+        self.free_at = -1e300
+        self.held_cycles = 0
+
+    @staticmethod
+    def applies(sensor: SensorParams, engine: str) -> bool:
+        """Whether a readout holds ``sensor``'s pixels: a rate limit whose arbiter holds
+        (``arbiter="hold"``), a dead time to slice the cycle by, the exact engine."""
+        return (sensor.max_event_rate_hz > 0 and sensor.arbiter == "hold"
+                and sensor.refractory_us >= 1.0 and engine == "exact")
+
+    def _serve(self, t: np.ndarray, free_at: float) -> tuple[np.ndarray, float]:
+        """Read times (µs) of requests at integer times ``t`` (sorted) and the queue's
+        state after them."""
+        req = (t // self.step) * self.step if self.step > 1 else t
+        read = np.empty(req.size, dtype=np.float64)
+        free_at = serve_queue(req, self.service_us, free_at, read)
+        return read - req, free_at
+
+    def free(self, t: np.ndarray) -> bool:
+        """Serve a cycle's requests fired with independent pixels: True (and the queue
+        advanced) when none waited longer than the tolerance."""
+        wait, free_at = self._serve(t, self.free_at)
+        if wait.size and float(wait.max()) > self.tolerance_us:
+            return False
+        self.free_at = free_at
+        return True
+
+    def held_cycle(self, cyc: CycleFiring, kw: dict[str, Any], noise_off: np.ndarray,
+                   pix: np.ndarray, *, width: int, t_start_us: int
+                   ) -> tuple[np.ndarray, int]:
+        """The cycle fired in slices, each pixel held until its event is read."""
+        state: PixelState = kw["state"]
+        period = cyc.period_us
+        noise_q = noise_off[:-1].copy()
+        n_slices = max(1, math.ceil(period / self.slice_us))
+        chunks: list[np.ndarray] = []
+        lost = 0
+        for j in range(1, n_slices + 1):
+            final = j == n_slices
+            counts, st, sp, off, n_lost = cyc.fire(
+                noise_q=noise_q, t_stop=None if final else j * self.slice_us, held=True,
+                **kw)
+            lost += n_lost
+            who = np.flatnonzero(counts)
+            if who.size == 0:
+                continue
+            bins = st[off[who]].astype(np.int64)
+            order = np.argsort(bins, kind="stable")
+            who, bins = who[order], bins[order]
+            t = t_start_us + cyc.t_lo + bins
+            wait, self.free_at = self._serve(t, self.free_at)
+            read = (t // self.step) * self.step + wait - t_start_us  # µs from the cycle's start
+            p = pix[who]
+            shift = period if final else 0.0
+            state.ready[p] = np.maximum(state.ready[p], read + self.refractory_us - shift)
+            if not final:
+                state.next_fire[p] = state.ready[p]
+            ev = np.empty(who.size, dtype=EVENT_DTYPE)
+            ev["x"] = p % width
+            ev["y"] = p // width
+            ev["t"] = t
+            ev["p"] = sp[off[who]]
+            chunks.append(ev)
+        self.held_cycles += 1
+        out = np.concatenate(chunks) if chunks else np.zeros(0, EVENT_DTYPE)
+        return out, lost
 
 
 def simulate_cycles(
@@ -513,6 +618,9 @@ def simulate_cycles(
     nbins = math.ceil(rig.period_us + sensor.latency_us + spread) + 2 - t_lo
     no_noise = NoiseArrivals(np.zeros(npix + 1, np.int64), np.zeros(0), np.zeros(0, np.int8))
 
+    # a readout that holds its pixels couples them all: the whole sensor in one call only
+    readout = (HeldReadout(sensor, npix) if HeldReadout.applies(sensor, engine)
+               and (lo, hi) == (0, npix) else None)
     chunks: list[np.ndarray] = []
     n_arrivals = 0
     n_lost = 0
@@ -526,7 +634,8 @@ def simulate_cycles(
             noise = no_noise
         ev, lost = eng.run_cycle(cycle=k, t_start_us=t_start, state=state, c_on=c_on_f,
                                  c_off=c_off_f, alive=alive, noise=noise, seed=hash_seed,
-                                 sensor=sensor, t_lo=t_lo, nbins=nbins, lo=lo, hi=hi)
+                                 sensor=sensor, t_lo=t_lo, nbins=nbins, lo=lo, hi=hi,
+                                 readout=readout)
         n_arrivals += int(noise.offsets[hi] - noise.offsets[lo])
         n_lost += lost
         chunks.append(ev)
@@ -551,9 +660,10 @@ def simulate_cycles(
         "hot_pixels": int(defects.hot.size),
         "dead_pixels": int(defects.dead.size),
         "scene_metadata": info["metadata"],
+        "readout_holds": readout is not None,
     }
     return CycleEvents(pixels=(lo, hi), cycles=chunks, n_arrivals=n_arrivals, n_lost=n_lost,
-                       context=context)
+                       context=context, held_cycles=readout.held_cycles if readout else 0)
 
 
 def finish_recording(parts: list[CycleEvents]) -> Recording:
@@ -591,15 +701,27 @@ def finish_recording(parts: list[CycleEvents]) -> Recording:
     n_emitted = int(events.size)
     n_background = n_arrivals - n_lost
     events, stats = apply_arbiter(events, sensor, n_pixels=npix)
+    holds = bool(ctx["readout_holds"])
+    if not holds and stats.max_delay_us > sensor.timestamp_resolution_us:
+        why = ("a split sensor" if len(parts) > 1 or parts[0].pixels != (0, npix)
+               else f"the {ctx['engine']} engine" if sensor.arbiter == "hold"
+               else f"arbiter={sensor.arbiter!r}")
+        (logger.warning if sensor.arbiter == "hold" else logger.info)(
+            "the readout made events wait up to %.0f µs, but their pixels fired on as if read "
+            "at once (%s); arbiter='hold', the exact engine and the whole sensor in one call "
+            "hold a waiting pixel until it is read", stats.max_delay_us, why)
     metadata = {k: v for k, v in ctx.items()
-                if k not in ("width", "height", "hot_pixels", "dead_pixels", "scene_metadata")}
+                if k not in ("width", "height", "hot_pixels", "dead_pixels", "scene_metadata",
+                             "readout_holds")}
     metadata["counts"] = {"signal": n_emitted - n_background, "background": n_background,
                           "background_lost_in_dead_time": n_lost,
                           "hot_pixels": ctx["hot_pixels"], "dead_pixels": ctx["dead_pixels"]}
     metadata["readout"] = {"emitted": stats.emitted, "delivered": stats.delivered,
                            "delayed": stats.delayed, "dropped": stats.dropped,
                            "max_delay_us": stats.max_delay_us,
-                           "rate_hz": sensor.readout(npix)[0]}
+                           "rate_hz": sensor.readout(npix)[0],
+                           "pixels_held": holds,
+                           "held_cycles": sum(p.held_cycles for p in parts)}
     for key, value in ctx["scene_metadata"].items():  # what the scene says of itself (a CFA)
         metadata.setdefault(key, value)
     width, height = ctx["width"], ctx["height"]

@@ -34,6 +34,7 @@ __all__ = [
     "merge_sorted",
     "noise_arrivals",
     "poisson_times",
+    "serve_queue",
 ]
 
 
@@ -230,6 +231,18 @@ def _arbiter(t, service_us, drop, buffer, free_at, keep, t_out):
             if start - ti > max_delay:
                 max_delay = start - ti
     return free_at, delayed, dropped, max_delay
+
+
+@nb.njit(cache=True)
+def serve_queue(req, service_us, free_at, read):
+    """First come, first served: ``read[i]``, when request ``i`` (times ``req``, sorted) is
+    read, one every ``service_us``; returns when the queue is free after them."""
+    for i in range(req.shape[0]):
+        ti = float(req[i])
+        start = ti if ti > free_at else free_at
+        read[i] = start
+        free_at = start + service_us
+    return free_at
 
 
 class Arbiter:

@@ -58,7 +58,10 @@ class SensorParams:
         of ``max_event_rate_hz`` (and of ``arbiter_buffer_events``), so each pixel
         carries the real sensor's load at any simulated size. 0: the rate holds as given
         for any size (a region of interest read alone).
-    arbiter : ``"delay"`` (events queue and their timestamps move later) or ``"drop"``
+    arbiter : ``"delay"`` (events queue and their timestamps move later; their pixels fire
+        on as if read at once), ``"hold"`` (as ``"delay"``, and a pixel whose event waits
+        is held until it is read: its dead time runs from the read; the exact engine
+        simulating the whole sensor, :class:`asynhdr.simulate.HeldReadout`) or ``"drop"``
         (events that find the queue full are lost).
     arbiter_buffer_events : queue length for ``"drop"``.
     timestamp_resolution_us : event time quantum; timestamps are floored to it.
@@ -114,8 +117,8 @@ class SensorParams:
         if self.hot_pixel_fraction + self.dead_pixel_fraction > 1.0:
             raise ValueError(f"sensor {self.name!r}: hot_pixel_fraction + dead_pixel_fraction "
                              "must not exceed 1")
-        if self.arbiter not in ("delay", "drop"):
-            raise bad("arbiter", "'delay' or 'drop'")
+        if self.arbiter not in ("delay", "hold", "drop"):
+            raise bad("arbiter", "'delay', 'hold' or 'drop'")
         if int(self.arbiter_buffer_events) != self.arbiter_buffer_events or \
                 self.arbiter_buffer_events < 1:
             raise bad("arbiter_buffer_events", "a whole number >= 1")

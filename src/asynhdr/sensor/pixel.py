@@ -49,7 +49,7 @@ import numpy as np
 from asynhdr.events import EVENT_DTYPE
 from asynhdr.sensor._rng import hash_normal2
 
-__all__ = ["PixelState", "cycle_pieces", "fire_cycle", "gather_sorted"]
+__all__ = ["CycleFiring", "PixelState", "cycle_pieces", "fire_cycle", "gather_sorted"]
 
 _EPS = 1e-12
 _NEVER = -1e300
@@ -67,6 +67,13 @@ class PixelState:
     pending : int8, 1 when the dead time ends after the cycle did: the reference is then
         taken at ``ready`` in the next cycle.
     pending_z : float64, the reset-noise draw of that pending reset.
+    resume : float64, µs from the cycle's start, within a cycle fired in slices: where the
+        pixel's search for its next event goes on (``-inf`` at a cycle's start).
+    done : int64, the events the pixel fired so far in the cycle (the index of its next
+        event's draws).
+    next_fire : float64, within a cycle fired in slices: no event of the pixel fires before
+        it (the next event's time where a slice found it beyond its end; ``-inf`` when
+        nothing is known).
     """
 
     def __init__(self, ref: np.ndarray) -> None:
@@ -75,12 +82,13 @@ class PixelState:
         self.ready = np.full(n, _NEVER, dtype=np.float64)
         self.pending = np.zeros(n, dtype=np.int8)
         self.pending_z = np.zeros(n, dtype=np.float64)
+        self.resume = np.full(n, _NEVER, dtype=np.float64)
+        self.done = np.zeros(n, dtype=np.int64)
+        self.next_fire = np.full(n, _NEVER, dtype=np.float64)
 
     def copy(self) -> PixelState:
         out = PixelState(self.ref)
-        out.ready[:] = self.ready
-        out.pending[:] = self.pending
-        out.pending_z[:] = self.pending_z
+        out.restore(self)
         return out
 
     def restore(self, other: PixelState) -> None:
@@ -88,6 +96,9 @@ class PixelState:
         self.ready[:] = other.ready
         self.pending[:] = other.pending
         self.pending_z[:] = other.pending_z
+        self.resume[:] = other.resume
+        self.done[:] = other.done
+        self.next_fire[:] = other.next_fire
 
 
 # ----------------------------------------------------------------------------- runs
@@ -407,20 +418,30 @@ def _levels(r_lvl, con, coff, log_domain):
 
 
 @nb.njit(cache=True, parallel=True, error_model="numpy")
-def _fire(pix, order, s, idx, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pieces, run_key,
+def _fire(pix, act, order, s, idx, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pieces, run_key,
           run_off, run_tab, inv_off, inv_lvl, inv_tab, c_on, c_off, ref, ready, pending,
-          pending_z, alive, nz_off, nz_t, nz_pol, seed, cycle, sigma, refr_us, lat_us, jit_us,
-          period_us, offsets, slot_t, slot_p, counts, overflow, n_lost, t_lo, nbins, block):
+          pending_z, resume, done, next_fire, alive, nz_off, nz_q, nz_t, nz_pol, seed, cycle, sigma,
+          refr_us, lat_us, jit_us, period_us, t_stop, final, held, offsets, slot_t, slot_p,
+          counts, overflow, n_lost, t_lo, nbins, block):
     """Events of one cycle for the listed pixels ``pix`` (module docstring).
 
-    ``order`` lists blocks of ``block`` listed pixels in the order threads take them.
+    ``act`` lists the listed pixels to fire (only their outputs are written), ``order``
+    its blocks of ``block`` in the order threads take them.
     Per listed pixel ``i``: slots ``offsets[i] .. offsets[i + 1]`` receive the events
     (time bin relative to ``t_lo`` and polarity); ``counts[i]`` is the number written,
     ``overflow[i]`` is set when the slots ran out (the caller runs the cycle again),
     ``n_lost[i]`` counts noise arrivals lost in dead time. State arrays are indexed by
-    the global pixel ``pix[i]``; noise arrivals by ``i``.
+    the global pixel ``pix[i]``; noise arrivals by ``i`` (``nz_q[i]``: the first not yet
+    met).
+
+    A cycle is fired whole (``final``, ``t_stop = period_us``) or in slices: a slice fires
+    the events whose firing time lies before ``t_stop`` and leaves each pixel where its
+    search stood (``resume``); the last slice is ``final`` (it moves the state to the next
+    cycle). With ``held`` a pixel fires at most one event per call and stays pending, its
+    dead time counted from the request until the caller moves ``ready`` to the end of the
+    dead time after the readout's acknowledge.
     """
-    n = pix.shape[0]
+    n = act.shape[0]
     pure = jit_us == 0.0 and lat_us == 0.0 and refr_us == 0.0
     draws = jit_us > 0.0 or sigma > 0.0
     nruns_max = 2 * pieces.shape[0] if mode == 0 else 1
@@ -428,11 +449,12 @@ def _fire(pix, order, s, idx, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pi
     for bi in nb.prange(nblk):
         local = np.empty((nruns_max, 3), dtype=np.int64)
         b0 = order[bi] * block
-        for i in range(b0, min(n, b0 + block)):
+        for ii in range(b0, min(n, b0 + block)):
+            i = act[ii]
             p = pix[i]
             counts[i] = 0
             n_lost[i] = 0
-            if alive[p] == 0:
+            if alive[p] == 0 or (not final and next_fire[p] >= t_stop):
                 continue
             ra = ia[i]
             rb = ib[i]
@@ -445,24 +467,30 @@ def _fire(pix, order, s, idx, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pi
             runs, nr = _runs_of(i, mode, xa, xb, d1, d2, pieces, run_key, run_off, run_tab,
                                 local)
             g0 = run_off[run_key[i]] if mode == 1 else 0
-            o = offsets[i]
+            o = offsets[i] - done[p]
             cap = offsets[i + 1] - o
-            cnt = 0
+            cnt = done[p]
             lost = 0
             free = ready[p]
             pend = pending[p] != 0
             pz = pending_z[p]
             r_lvl = ref[p]
-            q = nz_off[i]
+            q = nz_q[i]
             qe = nz_off[i + 1]
-            t = free if free > 0.0 else 0.0
-            if t >= period_us:
-                # blind for the whole cycle
-                while q < qe:
+            t = max(free, resume[p], 0.0)
+            nxt = _NEVER
+            if t >= t_stop:
+                # blind for the whole slice
+                while q < qe and nz_t[q] < t_stop:
                     q += 1
                     lost += 1
-                ready[p] = free - period_us
+                nz_q[i] = q
                 n_lost[i] = lost
+                if final:
+                    ready[p] = free - period_us
+                    resume[p] = _NEVER
+                    done[p] = 0
+                    next_fire[p] = _NEVER
                 continue
             r = _run_at(runs, nr, 0, t, s)
             k = _locate(s, idx, runs[r, 0], runs[r, 1] - 1, t)
@@ -545,15 +573,13 @@ def _fire(pix, order, s, idx, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pi
                 signal = found and tc <= tn
                 if not signal and not (tn <= s[b]):
                     if r == nr - 1:
+                        nxt = _INF  # no event before the cycle's end
                         break
                     r += 1
                     k = runs[r, 0]
                     t = s[k]
                     v = _val(rows, ra, rb, xa, xb, k)
                     continue
-                if cnt >= cap:
-                    overflow[i] = 1
-                    break
                 if signal:
                     tf = tc + jit_us * zj if jit_us > 0.0 else tc
                     if tf < free:
@@ -562,6 +588,13 @@ def _fire(pix, order, s, idx, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pi
                 else:
                     tf = tn
                     pol = nz_pol[q]
+                if tf >= t_stop and not final:
+                    nxt = tf  # a later slice's event: found again from t then
+                    break
+                if cnt >= cap:
+                    overflow[i] = 1
+                    break
+                if not signal:
                     q += 1
                 tb = np.int64(math.floor(tf + lat_us)) - t_lo
                 slot_t[o + cnt] = min(max(tb, 0), nbins - 1)
@@ -597,9 +630,12 @@ def _fire(pix, order, s, idx, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pi
                     continue
                 t_end = tf + lat_us + refr_us
                 free = t_end
-                if t_end >= period_us:
+                if held or t_end >= period_us:
+                    # the reference is taken when the dead time ends, in a later call
                     pend = True
                     pz = zr
+                    t = t_end
+                    nxt = t_end  # nothing fires before
                     break
                 t = t_end if t_end > 0.0 else 0.0
                 r = _run_at(runs, nr, r, t, s)
@@ -607,16 +643,21 @@ def _fire(pix, order, s, idx, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pi
                 v = _at(rows, ra, rb, xa, xb, s, k, t)
                 r_lvl = (v if log_domain else math.log(v)) + sigma * zr
                 thi, tlo = _levels(r_lvl, con, coff, log_domain)
-            while q < qe:
-                if nz_t[q] < free:
-                    lost += 1
-                q += 1
-            counts[i] = cnt
+            if final:
+                while q < qe:
+                    if nz_t[q] < free:
+                        lost += 1
+                    q += 1
+            counts[i] = cnt - done[p]
             n_lost[i] = lost
+            nz_q[i] = q
             ref[p] = r_lvl
-            ready[p] = free - period_us
+            ready[p] = free - period_us if final else free
             pending[p] = 1 if pend else 0
             pending_z[p] = pz
+            resume[p] = _NEVER if final else t
+            done[p] = 0 if final else cnt
+            next_fire[p] = _NEVER if final else nxt
 
 
 @nb.njit(cache=True, parallel=True, error_model="numpy")
@@ -670,6 +711,146 @@ def _block_order(n: int, block: int) -> np.ndarray:
 _BLOCK = 64
 
 
+class CycleFiring:
+    """One cycle of the listed pixels ``pix``, prepared once and fired whole or in slices.
+
+    ``s`` is the cycle's time grid (µs from its start) and ``rows`` the signal tabulated on
+    it; listed pixel ``i`` reads ``wa[i] rows[ia[i]] + wb[i] rows[ib[i]]``. The exact
+    irradiance gives ``pieces`` (:func:`cycle_pieces`); tabulated rows give each pixel's
+    ``run_key`` into the monotone runs ``run_off, run_tab``. Time bins of the slots count
+    from ``t_lo``, ``nbins`` of them.
+    """
+
+    def __init__(self, pix: np.ndarray, s: np.ndarray, rows: np.ndarray, ia: np.ndarray,
+                 ib: np.ndarray, wa: np.ndarray, wb: np.ndarray, *, log_domain: bool,
+                 pieces: np.ndarray | None, run_key: np.ndarray | None,
+                 run_off: np.ndarray | None, run_tab: np.ndarray | None, period_us: float,
+                 t_lo: int, nbins: int) -> None:
+        n = int(pix.size)
+        self.n = n
+        self.pix, self.s, self.rows, self.ia, self.ib, self.wa, self.wb = (
+            pix, s, rows, ia, ib, wa, wb)
+        self.log_domain = bool(log_domain)
+        self.mode = 0 if pieces is not None else 1
+        self.d1 = np.diff(rows[0]) if self.mode == 0 else np.zeros(1)
+        self.d2 = np.diff(rows[1]) if self.mode == 0 else np.zeros(1)
+        self.pieces = pieces if pieces is not None else np.zeros((1, 2), dtype=np.int64)
+        self.run_key = run_key if run_key is not None else np.zeros(1, dtype=np.int64)
+        self.run_off = run_off if run_off is not None else np.zeros(2, dtype=np.int64)
+        self.run_tab = run_tab if run_tab is not None else np.zeros((1, 3), dtype=np.int64)
+        if self.mode == 1:
+            assert run_key is not None and run_off is not None and run_tab is not None
+            self.index = level_index(rows, ia, ib, run_key, run_off, run_tab)
+        else:
+            self.index = (np.zeros(2, dtype=np.int64), np.zeros((1, 2)),
+                          np.zeros((1, 2), dtype=np.int32))
+        self.order = _block_order(n, _BLOCK)
+        self.idx = (np.searchsorted(s, np.arange(math.ceil(float(s[-1])) + 1,
+                                                 dtype=np.float64), side="right")
+                    - 1).astype(np.int64)
+        self.period_us = float(period_us)
+        self.t_lo = int(t_lo)
+        self.nbins = int(nbins)
+
+    def fire(self, *, c_on: np.ndarray, c_off: np.ndarray, state: PixelState,
+             alive: np.ndarray, noise_off: np.ndarray, noise_q: np.ndarray,
+             noise_t: np.ndarray, noise_pol: np.ndarray, seed: int, cycle: int,
+             reset_noise_sigma: float, refractory_us: float, latency_us: float,
+             jitter_sigma_us: float, t_stop: float | None = None, held: bool = False
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+        """Fire the events whose firing time lies before ``t_stop`` (µs from the cycle's
+        start; default the cycle's end, which also moves ``state`` to the next cycle);
+        ``state`` is advanced in place, ``noise_q`` (per listed pixel, starting at
+        ``noise_off[:-1]``) too. With ``held`` each pixel fires at most one event and stays
+        pending until the caller sets its ``ready`` (:class:`_fire`'s docstring).
+
+        Returns ``(counts, slot_t, slot_p, offsets, lost)``: listed pixel ``i`` fired
+        ``counts[i]`` events, in slots ``offsets[i] ..`` (time bins from ``t_lo``,
+        polarity); ``lost`` noise arrivals fell in dead time.
+        """
+        n = self.n
+        final = t_stop is None or t_stop >= self.period_us
+        stop = self.period_us if final else float(t_stop)  # type: ignore[arg-type]
+        inv_off, inv_lvl, inv_tab = self.index
+        if held:
+            return self._fire_held(stop, final, c_on=c_on, c_off=c_off, state=state,
+                                   alive=alive, noise_off=noise_off, noise_q=noise_q,
+                                   noise_t=noise_t, noise_pol=noise_pol, seed=seed,
+                                   cycle=cycle, reset_noise_sigma=reset_noise_sigma,
+                                   refractory_us=refractory_us, latency_us=latency_us,
+                                   jitter_sigma_us=jitter_sigma_us)
+        bound = np.empty(n, dtype=np.int64)
+        slot_dtype = np.int32  # a slot holds a time bin (one compiled kernel for any cycle)
+        c_scale = 1.0
+        saved = state.copy()
+        saved_q = noise_q.copy()
+        act = np.arange(n, dtype=np.int64)
+        for _attempt in range(8):
+            _bounds(self.pix, self.order, self.s, self.rows, self.ia, self.ib, self.wa, self.wb,
+                    self.log_domain, self.mode, self.d1, self.d2, self.pieces, self.run_key,
+                    self.run_off, self.run_tab, c_on, c_off, alive, noise_off,
+                    float(reset_noise_sigma), c_scale, bound, _BLOCK)
+            offsets = np.zeros(n + 1, dtype=np.int64)
+            np.cumsum(bound, out=offsets[1:])
+            total = int(offsets[-1])
+            slot_t = np.empty(total, dtype=slot_dtype)
+            slot_p = np.empty(total, dtype=np.int8)
+            counts = np.empty(n, dtype=np.int64)
+            overflow = np.zeros(n, dtype=np.int8)
+            lost = np.empty(n, dtype=np.int64)
+            _fire(self.pix, act, self.order, self.s, self.idx, self.rows, self.ia, self.ib, self.wa,
+                  self.wb, self.log_domain, self.mode, self.d1, self.d2, self.pieces,
+                  self.run_key, self.run_off, self.run_tab, inv_off, inv_lvl, inv_tab, c_on,
+                  c_off, state.ref, state.ready, state.pending, state.pending_z, state.resume,
+                  state.done, state.next_fire, alive, noise_off, noise_q, noise_t, noise_pol,
+                  np.uint64(seed), np.int64(cycle), float(reset_noise_sigma), float(refractory_us),
+                  float(latency_us), float(jitter_sigma_us), self.period_us, stop, final,
+                  bool(held), offsets, slot_t, slot_p, counts, overflow, lost,
+                  np.int64(self.t_lo), np.int64(self.nbins), _BLOCK)
+            if not overflow.any():
+                return counts, slot_t, slot_p, offsets, int(lost.sum())
+            state.restore(saved)
+            noise_q[:] = saved_q
+            c_scale *= 0.5
+        raise RuntimeError("pixel model: the event bound was exceeded repeatedly")
+
+    def _fire_held(self, stop: float, final: bool, *, c_on: np.ndarray, c_off: np.ndarray,
+                   state: PixelState, alive: np.ndarray, noise_off: np.ndarray,
+                   noise_q: np.ndarray, noise_t: np.ndarray, noise_pol: np.ndarray,
+                   seed: int, cycle: int, reset_noise_sigma: float, refractory_us: float,
+                   latency_us: float, jitter_sigma_us: float
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+        """:meth:`fire` with ``held``: one slot per pixel, and only the pixels whose next
+        event may fire before ``stop`` (every pixel in the ``final`` slice) are run; the
+        others' ``counts`` are 0."""
+        n = self.n
+        if not hasattr(self, "_held"):
+            self._held = (np.arange(n + 1, dtype=np.int64), np.empty(n, dtype=np.int32),
+                          np.empty(n, dtype=np.int8), np.zeros(n, dtype=np.int64),
+                          np.zeros(n, dtype=np.int8), np.zeros(n, dtype=np.int64))
+        offsets, slot_t, slot_p, counts, overflow, lost = self._held
+        counts[:] = 0
+        lost[:] = 0
+        if final:
+            act = np.arange(n, dtype=np.int64)
+        else:
+            act = np.flatnonzero(state.next_fire[self.pix] < stop).astype(np.int64)
+        inv_off, inv_lvl, inv_tab = self.index
+        order = _block_order(act.size, _BLOCK)
+        _fire(self.pix, act, order, self.s, self.idx, self.rows, self.ia, self.ib, self.wa,
+              self.wb, self.log_domain, self.mode, self.d1, self.d2, self.pieces, self.run_key,
+              self.run_off, self.run_tab, inv_off, inv_lvl, inv_tab, c_on, c_off, state.ref,
+              state.ready, state.pending, state.pending_z, state.resume, state.done,
+              state.next_fire, alive, noise_off, noise_q, noise_t, noise_pol, np.uint64(seed),
+              np.int64(cycle), float(reset_noise_sigma), float(refractory_us),
+              float(latency_us), float(jitter_sigma_us), self.period_us, stop, final, True,
+              offsets, slot_t, slot_p, counts, overflow, lost, np.int64(self.t_lo),
+              np.int64(self.nbins), _BLOCK)
+        if overflow.any():
+            raise RuntimeError("pixel model: a held pixel fired more than one event")
+        return counts, slot_t, slot_p, offsets, int(lost.sum())
+
+
 def fire_cycle(
     pix: np.ndarray,
     s: np.ndarray,
@@ -701,58 +882,21 @@ def fire_cycle(
     t_lo: int,
     nbins: int,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
-    """One cycle of the listed pixels ``pix``; ``state`` is advanced in place.
+    """One whole cycle of the listed pixels ``pix`` (:class:`CycleFiring`); ``state`` is
+    advanced in place.
 
     Returns ``(counts, slot_t, slot_p, offsets, lost)``: listed pixel ``i`` fired
     ``counts[i]`` events, in slots ``offsets[i] ..`` (time bins from ``t_lo``, polarity);
     ``lost`` noise arrivals fell in dead time.
     """
-    n = int(pix.size)
-    mode = 0 if pieces is not None else 1
-    d1 = np.diff(rows[0]) if mode == 0 else np.zeros(1)
-    d2 = np.diff(rows[1]) if mode == 0 else np.zeros(1)
-    pcs = pieces if pieces is not None else np.zeros((1, 2), dtype=np.int64)
-    rk = run_key if run_key is not None else np.zeros(1, dtype=np.int64)
-    ro = run_off if run_off is not None else np.zeros(2, dtype=np.int64)
-    rt = run_tab if run_tab is not None else np.zeros((1, 3), dtype=np.int64)
-    if mode == 1:
-        assert run_key is not None and run_off is not None and run_tab is not None
-        inv_off, inv_lvl, inv_tab = level_index(rows, ia, ib, run_key, run_off, run_tab)
-    else:
-        inv_off = np.zeros(2, dtype=np.int64)
-        inv_lvl = np.zeros((1, 2))
-        inv_tab = np.zeros((1, 2), dtype=np.int32)
-    order = _block_order(n, _BLOCK)
-    idx = (np.searchsorted(s, np.arange(math.ceil(float(s[-1])) + 1, dtype=np.float64),
-                           side="right") - 1).astype(np.int64)
-    bound = np.empty(n, dtype=np.int64)
-    slot_dtype = np.int32  # a slot holds a time bin (one compiled kernel for any cycle length)
-    c_scale = 1.0
-    saved = state.copy()
-    for _attempt in range(8):
-        _bounds(pix, order, s, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pcs, rk, ro,
-                rt, c_on, c_off, alive, noise_off, float(reset_noise_sigma), c_scale, bound,
-                _BLOCK)
-        offsets = np.zeros(n + 1, dtype=np.int64)
-        np.cumsum(bound, out=offsets[1:])
-        total = int(offsets[-1])
-        slot_t = np.empty(total, dtype=slot_dtype)
-        slot_p = np.empty(total, dtype=np.int8)
-        counts = np.empty(n, dtype=np.int64)
-        overflow = np.zeros(n, dtype=np.int8)
-        lost = np.empty(n, dtype=np.int64)
-        _fire(pix, order, s, idx, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pcs, rk, ro, rt,
-              inv_off, inv_lvl, inv_tab, c_on, c_off, state.ref, state.ready, state.pending,
-              state.pending_z, alive,
-              noise_off, noise_t, noise_pol, np.uint64(seed), np.int64(cycle),
-              float(reset_noise_sigma), float(refractory_us), float(latency_us),
-              float(jitter_sigma_us), float(period_us), offsets, slot_t, slot_p, counts,
-              overflow, lost, np.int64(t_lo), np.int64(nbins), _BLOCK)
-        if not overflow.any():
-            return counts, slot_t, slot_p, offsets, int(lost.sum())
-        state.restore(saved)
-        c_scale *= 0.5
-    raise RuntimeError("pixel model: the event bound was exceeded repeatedly")
+    cyc = CycleFiring(pix, s, rows, ia, ib, wa, wb, log_domain=log_domain, pieces=pieces,
+                      run_key=run_key, run_off=run_off, run_tab=run_tab, period_us=period_us,
+                      t_lo=t_lo, nbins=nbins)
+    return cyc.fire(
+        c_on=c_on, c_off=c_off, state=state, alive=alive, noise_off=noise_off,
+        noise_q=noise_off[:-1].copy(), noise_t=noise_t, noise_pol=noise_pol, seed=seed,
+        cycle=cycle, reset_noise_sigma=reset_noise_sigma, refractory_us=refractory_us,
+        latency_us=latency_us, jitter_sigma_us=jitter_sigma_us)
 
 
 # ----------------------------------------------------------------------------- output
