@@ -233,3 +233,19 @@ def test_a_pixel_waiting_for_the_readout_is_held_until_read(caplog) -> None:
     free = simulate(chart, **{**kw, "sensor": PRESETS["davis346"]})
     assert free.events.tobytes() == apart.events.tobytes()
     assert not free.metadata["readout"]["pixels_held"]
+
+
+def test_cli_simulate_hold(tmp_path) -> None:
+    from typer.testing import CliRunner
+
+    from asynhdr.cli import _register, app
+    from asynhdr.io import open_recording
+
+    _register()
+    out = tmp_path / "held.h5"
+    r = CliRunner().invoke(app, ["simulate", "chart", "--preset", "davis346", "--width", "48",
+                                 "--height", "32", "--n-cycles", "2", "--seed", "3",
+                                 "--sensor-seed", "1", "--hold", "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    assert "held until read in 2 of 2 cycles" in " ".join(r.output.split())
+    assert open_recording(out).metadata["readout"]["pixels_held"]

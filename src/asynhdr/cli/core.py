@@ -380,6 +380,9 @@ def simulate(
     roi: bool = typer.Option(False, "--roi", help="The pixels are a region of interest read "
                              "alone: the readout serves them at its full rate (default: "
                              "they stand for the whole array and get their share of it)."),
+    hold: bool = typer.Option(False, "--hold", help="A pixel whose event waits for the "
+                              "readout is held until it is read (arbiter 'hold'; default: "
+                              "the queue moves timestamps only). Exact engine, one process."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing file."),
 ) -> None:
     """Simulate a scene seen through the rig and write the recording."""
@@ -394,6 +397,8 @@ def simulate(
                             t1_shape=t1_shape, t2_shape=t2_shape, l_const=l_const,
                             panel=panel, pre_emphasis=pre_emphasis)
         seen = sensor.region_of_interest() if roi else sensor
+        if hold:
+            seen = seen.with_(name=seen.name, arbiter="hold")
         if scale is not None and not (scale > 0 and math.isfinite(scale)):
             fail(f"--scale must be a positive number, got {scale}")
         sc = _scene_from_spec(scene, width, height, scale,
@@ -433,8 +438,10 @@ def simulate(
         share = "" if roi or not sensor.array_pixels else (
             f", these {rec.width * rec.height:,} pixels' share of the array's "
             f"{sensor.max_event_rate_hz:.3g} ev/s; --roi reads them alone")
+        held = (f"; their pixels held until read in {ro['held_cycles']} of {n_cycles} cycles"
+                if ro.get("pixels_held") else "")
         console.print(f"readout: {ro['delayed']:,} of {ro['emitted']:,} events delayed, by up "
-                      f"to {ro['max_delay_us']:.0f} µs ({ro['rate_hz']:.3g} ev/s{share})")
+                      f"to {ro['max_delay_us']:.0f} µs ({ro['rate_hz']:.3g} ev/s{share}){held}")
 
 
 def _rig_middle(rig: Any) -> float:
