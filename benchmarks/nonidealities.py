@@ -3,7 +3,9 @@
 Runs the paper's chart experiment (:func:`asynhdr.experiments.run_chart_experiment`: the
 36-level step chart, a c-map from flat fields of the same sensor, every method) for a
 realistic preset, then again with one part of the pixel model switched off at a time,
-and for the ideal pixel. Prints one row per variant: events, the exp weighting's mean
+with the readout holding a waiting pixel until it is read (``arbiter="hold"``, where the
+preset's queue only moves timestamps), and for the ideal pixel. Prints one row per
+variant: events, the exp weighting's mean
 patch SNR without and with the c-map (over the patches that respond, counted), both
 dynamic ranges of exp with the c-map, and the dynamic range of ``invert``.
 docs/sensor.md quotes the table.
@@ -43,6 +45,9 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     ap.add_argument("--preset", default="imx636")
     ap.add_argument("--width", type=int, default=640)
     ap.add_argument("--height", type=int, default=480)
+    ap.add_argument("--only", nargs="+", default=None, metavar="WORD",
+                    help="run only the variants whose name holds one of these words "
+                         "(e.g. 'all' 'holding')")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args(argv)
     base = get_preset(args.preset)
@@ -50,7 +55,12 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     for part, change in OFF.items():
         if any(getattr(base, k) != v for k, v in change.items()):
             variants.append((f"without {part}", base.with_(**change)))
+    if base.max_event_rate_hz > 0 and base.arbiter == "delay":
+        variants.append(("with the readout holding its pixels",
+                         base.with_(name=base.name, arbiter="hold")))
     variants.append(("ideal pixel", get_preset("ideal")))
+    if args.only:
+        variants = [(n, v) for n, v in variants if any(w in n for w in args.only)]
     rows = []
     print(f"chart experiment, {args.width}x{args.height}, 3 cycles, c-map from 4 flat fields")
     print("| variant | events | exp SNR (dB) no c-map / c-map [patches] | DR exp+c-map EMVA / "
