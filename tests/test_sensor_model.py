@@ -249,3 +249,15 @@ def test_cli_simulate_hold(tmp_path) -> None:
     assert r.exit_code == 0, r.output
     assert "held until read in 2 of 2 cycles" in " ".join(r.output.split())
     assert open_recording(out).metadata["readout"]["pixels_held"]
+    # without --hold the queue only moves timestamps, and the output says how to hold
+    r = CliRunner().invoke(app, ["simulate", "chart", "--preset", "davis346", "--width", "48",
+                                 "--height", "32", "--n-cycles", "2", "-o",
+                                 str(tmp_path / "free.h5")])
+    assert r.exit_code == 0, r.output
+    assert "fired on as if read at once (--hold holds them)" in " ".join(r.output.split())
+    for extra, word in ((["--scheduler", "local"], "--scheduler"),
+                        (["--engine", "stepped"], "exact engine")):
+        bad = tmp_path / "bad.h5"
+        r = CliRunner().invoke(app, ["simulate", "chart", "--width", "8", "--height", "8",
+                                     "--hold", *extra, "-o", str(bad)])
+        assert r.exit_code == 2 and word in r.output and not bad.exists()

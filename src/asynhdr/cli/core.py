@@ -398,6 +398,12 @@ def simulate(
                             panel=panel, pre_emphasis=pre_emphasis)
         seen = sensor.region_of_interest() if roi else sensor
         if hold:
+            if scheduler is not None:
+                fail("--hold needs the whole sensor in one process: a waiting pixel is held "
+                     "by every other pixel's events; leave out --scheduler")
+            if engine == "stepped":
+                fail("--hold needs the exact engine (a static scene); the stepped engine "
+                     "fires its pixels chunk by chunk")
             seen = seen.with_(name=seen.name, arbiter="hold")
         if scale is not None and not (scale > 0 and math.isfinite(scale)):
             fail(f"--scale must be a positive number, got {scale}")
@@ -439,7 +445,9 @@ def simulate(
             f", these {rec.width * rec.height:,} pixels' share of the array's "
             f"{sensor.max_event_rate_hz:.3g} ev/s; --roi reads them alone")
         held = (f"; their pixels held until read in {ro['held_cycles']} of {n_cycles} cycles"
-                if ro.get("pixels_held") else "")
+                if ro.get("pixels_held") else
+                "; their pixels fired on as if read at once (--hold holds them)"
+                if ro["max_delay_us"] > sensor.timestamp_resolution_us else "")
         console.print(f"readout: {ro['delayed']:,} of {ro['emitted']:,} events delayed, by up "
                       f"to {ro['max_delay_us']:.0f} µs ({ro['rate_hz']:.3g} ev/s{share}){held}")
 
