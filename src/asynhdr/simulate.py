@@ -228,8 +228,9 @@ class _Engine:
             self.wa = 1.0 - w
             self.wb = w
             self.y = np.log(self.a1[0] * self.grid_radiance + self.b2[0])
-            self.pairs, self.run_key = np.unique(lower, return_inverse=True)
-            self.run_key = self.run_key.astype(np.int64)
+            present = np.bincount(lower) > 0  # the row pairs in use, by rank
+            self.pairs = np.flatnonzero(present)
+            self.run_key = (np.cumsum(present) - 1)[lower].astype(np.int64)
             self.ref0 = self.wa * self.y[self.ia] + self.wb * self.y[self.ib]
         else:
             lum0 = frames[:, 0] if not moving else self._lum_at(np.array([float(t0_us)]))[:, 0]

@@ -343,10 +343,14 @@ def radiance_grid(radiance: np.ndarray, *, dlog: float, floor: float
     pos = (g - g0) / dlog
     j = np.floor(pos).astype(np.int64)
     w = pos - j
-    used = np.unique(np.concatenate([j, j + 1]))
-    lower = np.searchsorted(used, j)
+    # the grid values in use and each pixel's rank among them: j is a small whole number
+    present = np.zeros(int(j.max()) + 2, dtype=np.bool_)
+    present[j] = True
+    present[j + 1] = True
+    used = np.flatnonzero(present)
+    rank = np.cumsum(present) - 1
     values = np.exp(g0 + used * dlog)
-    return values, lower.astype(np.int64), np.clip(w, 0.0, 1.0)
+    return values, rank[j].astype(np.int64), np.clip(w, 0.0, 1.0)
 
 
 # ----------------------------------------------------------------------------- runs
