@@ -258,3 +258,97 @@ def reference_events(radiance: np.ndarray, rig: Rig, sensor: SensorParams, *,
                             np.uint64(hseed), p, nz_t, nz_p, nz_c, float(rig.period_us), ot, op)
         out.append((np.floor(ot[:n]).astype(np.int64), op[:n].copy()))
     return out
+
+
+def held_reference_events(radiance: np.ndarray, rig: Rig, sensor: SensorParams, *,
+                          n_cycles: int, seed: int, sensor_seed: int):
+    """Per pixel: (timestamps, polarities) of the pixel model without a photoreceptor and
+    without background events behind a readout that holds a waiting pixel until it is read,
+    simulated event by event in time order (one global queue; the next request of every
+    pixel in a heap), written apart from the simulator's slices: the irradiance is
+    ``L a(t) + b(t)``, linear between the waveforms' knots, and a crossing is solved on the
+    interval where it happens. Timestamps are the reads, floored."""
+    import heapq
+
+    if sensor.cutoff_hz > 0 or sensor.has_noise_events or sensor.latency_us:
+        raise ValueError("the held reference has no photoreceptor, background or latency")
+    c_on, c_off, alive, hseed, _ = simulator_draws(radiance, rig, sensor, n_cycles=n_cycles,
+                                                   seed=seed, sensor_seed=sensor_seed)
+    w1, w2 = rig.waveforms()
+    knots = w1.phase if np.array_equal(w1.phase, w2.phase) else np.union1d(w1.phase, w2.phase)
+    period = float(rig.period_us)
+    s = np.asarray(knots, dtype=np.float64) * period
+    a = rig.k_lens * np.asarray(w1(knots), dtype=np.float64)
+    b = rig.k_lens * rig.l_const * np.asarray(w2(knots), dtype=np.float64)
+    lum = radiance.ravel().astype(np.float64)
+    service = 1e6 / sensor.max_event_rate_hz
+    refr, jit, sigma = sensor.refractory_us, sensor.jitter_sigma_us, sensor.reset_noise_sigma
+
+    def v_at(p: int, t: float) -> float:
+        k = min(max(int(np.searchsorted(s, t, side="right")) - 1, 0), s.size - 2)
+        f = (t - s[k]) / (s[k + 1] - s[k])
+        va, vb = lum[p] * a[k] + b[k], lum[p] * a[k + 1] + b[k + 1]
+        return va + (vb - va) * min(max(f, 0.0), 1.0)
+
+    def crossing(p: int, t: float, ref: float) -> tuple[float, int] | None:
+        hi, lo = math.exp(ref + c_on[p]), math.exp(ref - c_off[p])
+        v0 = v_at(p, t)
+        if v0 >= hi * (1 - 1e-12):
+            return t, 1
+        if v0 <= lo * (1 + 1e-12):
+            return t, -1
+        k = int(np.searchsorted(s, t, side="right"))
+        t0 = t
+        for j in range(k, s.size):
+            v1 = lum[p] * a[j] + b[j]
+            if v1 >= hi * (1 - 1e-12) or v1 <= lo * (1 + 1e-12):
+                up = v1 >= hi * (1 - 1e-12)
+                lvl = hi if up else lo
+                f = (lvl - v0) / (v1 - v0) if v1 != v0 else 1.0
+                return t0 + min(max(f, 0.0), 1.0) * (s[j] - t0), (1 if up else -1)
+            t0, v0 = s[j], v1
+        return None
+
+    npix = lum.size
+    ref = [math.log(v_at(p, 0.0)) for p in range(npix)]
+    free = [-1e300] * npix  # end of the dead time, µs from the cycle's start
+    pend_z: list[float | None] = [None] * npix
+    out_t: list[list[int]] = [[] for _ in range(npix)]
+    out_p: list[list[int]] = [[] for _ in range(npix)]
+    def schedule(heap: list[tuple[int, int, float, int]], p: int, t: float, c: int,
+                 k: int) -> None:
+        """Push pixel ``p``'s next request (its ``k``-th event of cycle ``c``) from ``t``."""
+        z = pend_z[p]
+        if z is not None:
+            ref[p] = math.log(v_at(p, t)) + sigma * z
+            pend_z[p] = None
+        x = crossing(p, t, ref[p])
+        if x is None:
+            return
+        zj, _ = hash_normal2(np.uint64(hseed), p, c, k)
+        tf = max(x[0] + jit * zj, free[p])
+        heapq.heappush(heap, (math.floor(tf), p, tf, x[1]))
+
+    free_at = -1e300
+    for c in range(n_cycles):
+        n = [0] * npix
+        heap: list[tuple[int, int, float, int]] = []
+        for p in range(npix):
+            if alive[p] and max(free[p], 0.0) < period:
+                schedule(heap, p, max(free[p], 0.0), c, 0)
+        while heap:
+            tb, p, tf, pol = heapq.heappop(heap)
+            read = max(float(c * period + tb), free_at)
+            free_at = read + service
+            out_t[p].append(math.floor(read))
+            out_p[p].append(pol)
+            _, zr = hash_normal2(np.uint64(hseed), p, c, n[p])
+            n[p] += 1
+            free[p] = max(tf, read - c * period) + refr
+            pend_z[p] = zr
+            if free[p] < period:
+                schedule(heap, p, free[p], c, n[p])
+        for p in range(npix):
+            free[p] -= period
+    return [(np.asarray(out_t[p], np.int64), np.asarray(out_p[p], np.int8))
+            for p in range(npix)]
