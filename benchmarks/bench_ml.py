@@ -66,8 +66,10 @@ def chart_figures(img: np.ndarray, scene: Any) -> dict[str, Any]:
 
 
 def run_preset(preset: str, *, width: int, height: int, seed: int = 0,
-               rig: Any = None) -> dict[str, Any]:
+               rig: Any = None, hold: bool = False) -> dict[str, Any]:
     sensor = get_preset(preset)
+    if hold:
+        sensor = sensor.with_(name=preset, arbiter="hold")
     rig = rig or default_rig(preset)
     scene = step_chart(width=width, height=height, densities=DENSITIES, illuminance_lux=L_TOP,
                        columns=8)
@@ -101,7 +103,9 @@ def run_preset(preset: str, *, width: int, height: int, seed: int = 0,
     ro = rec.metadata.get("readout") or {}
     print(f"  {preset:9s} {rig.period_us / 1e3:g} ms cycle, {rec.events.size:,} events; readout "
           f"{ro.get('rate_hz', 0):.3g} ev/s for these pixels: {ro.get('delayed', 0):,} "
-          f"delayed, by up to {ro.get('max_delay_us', 0):.0f} µs", flush=True)
+          f"delayed, by up to {ro.get('max_delay_us', 0):.0f} µs"
+          + (f"; pixels held until read in {ro['held_cycles']} cycles"
+             if ro.get("pixels_held") else ""), flush=True)
     res: dict[str, Any] = {}
     for name, kw in runs.items():
         flags: dict[str, Any] = {}
@@ -217,6 +221,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--no-speed", action="store_true")
     ap.add_argument("--rig", type=Path, default=None,
                     help="a rig file to use instead of each preset's designed rig")
+    ap.add_argument("--hold", action="store_true",
+                    help="the readout holds a waiting pixel until it is read "
+                         "(arbiter 'hold'; default: the preset's readout)")
     args = ap.parse_args(argv)
     rig = None
     if args.rig is not None:
@@ -225,7 +232,8 @@ def main(argv: list[str] | None = None) -> None:
         rig = read_rig(args.rig).rig
     results: dict[str, Any] = {"presets": {}}
     for p in args.presets:
-        results["presets"][p] = run_preset(p, width=args.width, height=args.height, rig=rig)
+        results["presets"][p] = run_preset(p, width=args.width, height=args.height, rig=rig,
+                                           hold=args.hold)
     if not args.no_speed:
         results["speed"] = speed()
     args.out.mkdir(parents=True, exist_ok=True)
