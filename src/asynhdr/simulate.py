@@ -303,6 +303,9 @@ class _Engine:
                       reset_noise_sigma=sensor.reset_noise_sigma,
                       refractory_us=sensor.refractory_us, latency_us=sensor.latency_us,
                       jitter_sigma_us=sensor.jitter_sigma_us)
+            if readout is not None and readout.busy:
+                return readout.held_cycle(cyc, kw, nz.offsets, pix, width=self.width,
+                                          t_start_us=t_start_us)
             saved = state.copy() if readout is not None else None
             counts, st, sp, off, lost = cyc.fire(
                 noise_q=nz.offsets[:-1].copy(), **kw)  # type: ignore[arg-type]
@@ -449,7 +452,9 @@ class HeldReadout:
     independent: a pixel would be held less than that. Otherwise the cycle is fired again
     in slices of ``refractory_us`` (a pixel fires at most once in a slice), each slice's
     requests are read in time order, and each requesting pixel's dead time is set from
-    its read.
+    its read. After a cycle in which events waited longer than the tolerance even so
+    (``busy``), the next cycle goes to the slices at once: the independent pass would be
+    thrown away.
     """
 
     def __init__(self, sensor: SensorParams, n_pixels: int) -> None:
@@ -461,6 +466,7 @@ class HeldReadout:
         self.tolerance_us = float(self.step)
         self.free_at = -1e300
         self.held_cycles = 0
+        self.busy = False
 
     @staticmethod
     def applies(sensor: SensorParams, engine: str) -> bool:
@@ -496,6 +502,7 @@ class HeldReadout:
         n_slices = max(1, math.ceil(period / self.slice_us))
         chunks: list[np.ndarray] = []
         lost = 0
+        longest = 0.0
         for j in range(1, n_slices + 1):
             final = j == n_slices
             counts, st, sp, off, n_lost = cyc.fire(
@@ -510,6 +517,7 @@ class HeldReadout:
             who, bins = who[order], bins[order]
             t = t_start_us + cyc.t_lo + bins
             wait, self.free_at = self._serve(t, self.free_at)
+            longest = max(longest, float(wait.max()))
             read = (t // self.step) * self.step + wait - t_start_us  # µs from the cycle's start
             p = pix[who]
             shift = period if final else 0.0
@@ -523,6 +531,7 @@ class HeldReadout:
             ev["p"] = sp[off[who]]
             chunks.append(ev)
         self.held_cycles += 1
+        self.busy = longest > self.tolerance_us
         out = np.concatenate(chunks) if chunks else np.zeros(0, EVENT_DTYPE)
         return out, lost
 

@@ -751,6 +751,7 @@ class CycleFiring:
         self.period_us = float(period_us)
         self.t_lo = int(t_lo)
         self.nbins = int(nbins)
+        self._held_buffers: tuple[np.ndarray, ...] | None = None
 
     def fire(self, *, c_on: np.ndarray, c_off: np.ndarray, state: PixelState,
              alive: np.ndarray, noise_off: np.ndarray, noise_q: np.ndarray,
@@ -824,11 +825,11 @@ class CycleFiring:
         event may fire before ``stop`` (every pixel in the ``final`` slice) are run; the
         others' ``counts`` are 0."""
         n = self.n
-        if not hasattr(self, "_held"):
-            self._held = (np.arange(n + 1, dtype=np.int64), np.empty(n, dtype=np.int32),
-                          np.empty(n, dtype=np.int8), np.zeros(n, dtype=np.int64),
-                          np.zeros(n, dtype=np.int8), np.zeros(n, dtype=np.int64))
-        offsets, slot_t, slot_p, counts, overflow, lost = self._held
+        if self._held_buffers is None:  # one slot per pixel, kept from slice to slice
+            self._held_buffers = (np.arange(n + 1, dtype=np.int64), np.empty(n, dtype=np.int32),
+                                  np.empty(n, dtype=np.int8), np.zeros(n, dtype=np.int64),
+                                  np.zeros(n, dtype=np.int8), np.zeros(n, dtype=np.int64))
+        offsets, slot_t, slot_p, counts, overflow, lost = self._held_buffers
         counts[:] = 0
         lost[:] = 0
         if final:
