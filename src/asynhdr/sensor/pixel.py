@@ -86,19 +86,33 @@ class PixelState:
         self.done = np.zeros(n, dtype=np.int64)
         self.next_fire = np.full(n, _NEVER, dtype=np.float64)
 
-    def copy(self) -> PixelState:
-        out = PixelState(self.ref)
-        out.restore(self)
+    def copy(self, *, slices: bool = True) -> PixelState:
+        """A copy; without ``slices`` one to restore with ``slices=False`` only (its slice
+        fields are empty)."""
+        if slices:
+            out = PixelState(self.ref)
+            out.restore(self)
+            return out
+        out = PixelState.__new__(PixelState)
+        out.ref = self.ref.copy()
+        out.ready = self.ready.copy()
+        out.pending = self.pending.copy()
+        out.pending_z = self.pending_z.copy()
+        out.resume = np.empty(0)
+        out.done = np.empty(0, dtype=np.int64)
+        out.next_fire = np.empty(0)
         return out
 
-    def restore(self, other: PixelState) -> None:
+    def restore(self, other: PixelState, *, slices: bool = True) -> None:
+        """Take ``other``'s values (without ``slices``, not the slice fields)."""
         self.ref[:] = other.ref
         self.ready[:] = other.ready
         self.pending[:] = other.pending
         self.pending_z[:] = other.pending_z
-        self.resume[:] = other.resume
-        self.done[:] = other.done
-        self.next_fire[:] = other.next_fire
+        if slices:
+            self.resume[:] = other.resume
+            self.done[:] = other.done
+            self.next_fire[:] = other.next_fire
 
 
 # ----------------------------------------------------------------------------- runs
@@ -421,7 +435,8 @@ def _levels(r_lvl, con, coff, log_domain):
 def _fire(pix, act, order, s, idx, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, pieces, run_key,
           run_off, run_tab, inv_off, inv_lvl, inv_tab, c_on, c_off, ref, ready, pending,
           pending_z, resume, done, next_fire, alive, nz_off, nz_q, nz_t, nz_pol, seed, cycle, sigma,
-          refr_us, lat_us, jit_us, period_us, t_stop, final, held, offsets, slot_t, slot_p,
+          refr_us, lat_us, jit_us, period_us, t_stop, final, held, sliced, offsets, slot_t,
+          slot_p,
           counts, overflow, n_lost, t_lo, nbins, block):
     """Events of one cycle for the listed pixels ``pix`` (module docstring).
 
@@ -439,7 +454,9 @@ def _fire(pix, act, order, s, idx, rows, ia, ib, wa, wb, log_domain, mode, d1, d
     search stood (``resume``); the last slice is ``final`` (it moves the state to the next
     cycle). With ``held`` a pixel fires at most one event per call and stays pending, its
     dead time counted from the request until the caller moves ``ready`` to the end of the
-    dead time after the readout's acknowledge.
+    dead time after the readout's acknowledge. Without ``sliced`` (a cycle fired whole,
+    never sliced) the slice state (``resume``, ``done``, ``next_fire``) is neither read nor
+    written.
     """
     n = act.shape[0]
     pure = jit_us == 0.0 and lat_us == 0.0 and refr_us == 0.0
@@ -467,9 +484,10 @@ def _fire(pix, act, order, s, idx, rows, ia, ib, wa, wb, log_domain, mode, d1, d
             runs, nr = _runs_of(i, mode, xa, xb, d1, d2, pieces, run_key, run_off, run_tab,
                                 local)
             g0 = run_off[run_key[i]] if mode == 1 else 0
-            o = offsets[i] - done[p]
+            cnt0 = done[p] if sliced else 0
+            o = offsets[i] - cnt0
             cap = offsets[i + 1] - o
-            cnt = done[p]
+            cnt = cnt0
             lost = 0
             free = ready[p]
             pend = pending[p] != 0
@@ -477,7 +495,7 @@ def _fire(pix, act, order, s, idx, rows, ia, ib, wa, wb, log_domain, mode, d1, d
             r_lvl = ref[p]
             q = nz_q[i]
             qe = nz_off[i + 1]
-            t = max(free, resume[p], 0.0)
+            t = max(free, resume[p], 0.0) if sliced else max(free, 0.0)
             nxt = _NEVER
             if t >= t_stop:
                 # blind for the whole slice
@@ -488,9 +506,10 @@ def _fire(pix, act, order, s, idx, rows, ia, ib, wa, wb, log_domain, mode, d1, d
                 n_lost[i] = lost
                 if final:
                     ready[p] = free - period_us
-                    resume[p] = _NEVER
-                    done[p] = 0
-                    next_fire[p] = _NEVER
+                    if sliced:
+                        resume[p] = _NEVER
+                        done[p] = 0
+                        next_fire[p] = _NEVER
                 continue
             r = _run_at(runs, nr, 0, t, s)
             k = _locate(s, idx, runs[r, 0], runs[r, 1] - 1, t)
@@ -648,16 +667,17 @@ def _fire(pix, act, order, s, idx, rows, ia, ib, wa, wb, log_domain, mode, d1, d
                     if nz_t[q] < free:
                         lost += 1
                     q += 1
-            counts[i] = cnt - done[p]
+            counts[i] = cnt - cnt0
             n_lost[i] = lost
             nz_q[i] = q
             ref[p] = r_lvl
             ready[p] = free - period_us if final else free
             pending[p] = 1 if pend else 0
             pending_z[p] = pz
-            resume[p] = _NEVER if final else t
-            done[p] = 0 if final else cnt
-            next_fire[p] = _NEVER if final else nxt
+            if sliced:
+                resume[p] = _NEVER if final else t
+                done[p] = 0 if final else cnt
+                next_fire[p] = _NEVER if final else nxt
 
 
 @nb.njit(cache=True, parallel=True, error_model="numpy")
@@ -752,6 +772,7 @@ class CycleFiring:
         self.t_lo = int(t_lo)
         self.nbins = int(nbins)
         self._held_buffers: tuple[np.ndarray, ...] | None = None
+        self._sliced = False  # a slice was fired: the state's slice fields are in use
 
     def fire(self, *, c_on: np.ndarray, c_off: np.ndarray, state: PixelState,
              alive: np.ndarray, noise_off: np.ndarray, noise_q: np.ndarray,
@@ -782,8 +803,10 @@ class CycleFiring:
                                    jitter_sigma_us=jitter_sigma_us)
         bound = np.empty(n, dtype=np.int64)
         slot_dtype = np.int32  # a slot holds a time bin (one compiled kernel for any cycle)
+        sliced = self._sliced or not final
+        self._sliced = sliced
         c_scale = 1.0
-        saved = state.copy()
+        saved = state.copy(slices=sliced)
         saved_q = noise_q.copy()
         act = np.arange(n, dtype=np.int64)
         for _attempt in range(8):
@@ -806,11 +829,11 @@ class CycleFiring:
                   state.done, state.next_fire, alive, noise_off, noise_q, noise_t, noise_pol,
                   np.uint64(seed), np.int64(cycle), float(reset_noise_sigma), float(refractory_us),
                   float(latency_us), float(jitter_sigma_us), self.period_us, stop, final,
-                  bool(held), offsets, slot_t, slot_p, counts, overflow, lost,
+                  bool(held), sliced, offsets, slot_t, slot_p, counts, overflow, lost,
                   np.int64(self.t_lo), np.int64(self.nbins), _BLOCK)
             if not overflow.any():
                 return counts, slot_t, slot_p, offsets, int(lost.sum())
-            state.restore(saved)
+            state.restore(saved, slices=sliced)
             noise_q[:] = saved_q
             c_scale *= 0.5
         raise RuntimeError("pixel model: the event bound was exceeded repeatedly")
@@ -825,6 +848,7 @@ class CycleFiring:
         event may fire before ``stop`` (every pixel in the ``final`` slice) are run; the
         others' ``counts`` are 0."""
         n = self.n
+        self._sliced = True
         if self._held_buffers is None:  # one slot per pixel, kept from slice to slice
             self._held_buffers = (np.arange(n + 1, dtype=np.int64), np.empty(n, dtype=np.int32),
                                   np.empty(n, dtype=np.int8), np.zeros(n, dtype=np.int64),
@@ -845,7 +869,7 @@ class CycleFiring:
               state.next_fire, alive, noise_off, noise_q, noise_t, noise_pol, np.uint64(seed),
               np.int64(cycle), float(reset_noise_sigma), float(refractory_us),
               float(latency_us), float(jitter_sigma_us), self.period_us, stop, final, True,
-              offsets, slot_t, slot_p, counts, overflow, lost, np.int64(self.t_lo),
+              True, offsets, slot_t, slot_p, counts, overflow, lost, np.int64(self.t_lo),
               np.int64(self.nbins), _BLOCK)
         if overflow.any():
             raise RuntimeError("pixel model: a held pixel fired more than one event")
