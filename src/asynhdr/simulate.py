@@ -316,7 +316,8 @@ class _Engine:
             assert saved is not None
             state.restore(saved)
             return readout.held_cycle(cyc, kw, nz.offsets, pix, width=self.width,
-                                      t_start_us=t_start_us)
+                                      t_start_us=t_start_us,
+                                      free_until_us=readout.first_late_us - t_start_us)
         # stepped: each pixel's own row, a chunk of pixels at a time
         if self.frames.shape[1] > 1:
             self._set_grid(self.times_us - t_start_us)
@@ -452,9 +453,10 @@ class HeldReadout:
     independent: a pixel would be held less than that. Otherwise the cycle is fired again
     in slices of ``refractory_us`` (a pixel fires at most once in a slice), each slice's
     requests are read in time order, and each requesting pixel's dead time is set from
-    its read. After a cycle in which events waited longer than the tolerance even so
-    (``busy``), the next cycle goes to the slices at once: the independent pass would be
-    thrown away.
+    its read; the slices before the first request that waited longer than the tolerance
+    are fired at once, as in the first pass. After a cycle in which events waited longer
+    than the tolerance even so (``busy``), the next cycle goes to the slices at once: the
+    independent pass would be thrown away.
     """
 
     def __init__(self, sensor: SensorParams, n_pixels: int) -> None:
@@ -467,6 +469,7 @@ class HeldReadout:
         self.free_at = -1e300
         self.held_cycles = 0
         self.busy = False
+        self.first_late_us = 0.0
 
     @staticmethod
     def applies(sensor: SensorParams, engine: str) -> bool:
@@ -487,15 +490,19 @@ class HeldReadout:
         """Serve a cycle's requests fired with independent pixels: True (and the queue
         advanced) when none waited longer than the tolerance."""
         wait, free_at = self._serve(t, self.free_at)
-        if wait.size and float(wait.max()) > self.tolerance_us:
+        late = np.flatnonzero(wait > self.tolerance_us)
+        if late.size:
+            self.first_late_us = float(t[late[0]])
             return False
         self.free_at = free_at
         return True
 
     def held_cycle(self, cyc: CycleFiring, kw: dict[str, Any], noise_off: np.ndarray,
-                   pix: np.ndarray, *, width: int, t_start_us: int
+                   pix: np.ndarray, *, width: int, t_start_us: int, free_until_us: float = 0.0
                    ) -> tuple[np.ndarray, int]:
-        """The cycle fired in slices, each pixel held until its event is read."""
+        """The cycle fired in slices, each pixel held until its event is read; before
+        ``free_until_us`` (µs from the cycle's start: no request before it waits longer
+        than the tolerance) the whole slices fired at once with the pixels independent."""
         state: PixelState = kw["state"]
         period = cyc.period_us
         noise_q = noise_off[:-1].copy()
@@ -503,7 +510,16 @@ class HeldReadout:
         chunks: list[np.ndarray] = []
         lost = 0
         longest = 0.0
-        for j in range(1, n_slices + 1):
+        j0 = min(int(free_until_us // self.slice_us), n_slices - 1)
+        if j0 >= 1:
+            counts, st, sp, off, lost = cyc.fire(noise_q=noise_q, t_stop=j0 * self.slice_us,
+                                                 **kw)
+            ev = gather_sorted(off, counts, st, sp, pix, width=width,
+                               t_first_us=t_start_us + cyc.t_lo, nbins=cyc.nbins)
+            wait, self.free_at = self._serve(ev["t"], self.free_at)
+            longest = float(wait.max(initial=0.0))
+            chunks.append(ev)
+        for j in range(j0 + 1, n_slices + 1):
             final = j == n_slices
             counts, st, sp, off, n_lost = cyc.fire(
                 noise_q=noise_q, t_stop=None if final else j * self.slice_us, held=True,
