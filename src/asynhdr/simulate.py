@@ -500,56 +500,112 @@ class HeldReadout:
     def held_cycle(self, cyc: CycleFiring, kw: dict[str, Any], noise_off: np.ndarray,
                    pix: np.ndarray, *, width: int, t_start_us: int, free_until_us: float = 0.0
                    ) -> tuple[np.ndarray, int]:
-        """The cycle fired in slices, each pixel held until its event is read; before
-        ``free_until_us`` (µs from the cycle's start: no request before it waits longer
-        than the tolerance) the whole slices fired at once with the pixels independent."""
+        """The cycle fired in slices, each pixel held until its event is read.
+
+        Where no request waits longer than the tolerance the slices are fired at once, with
+        the pixels independent, as in the first pass: before ``free_until_us`` (µs from the
+        cycle's start), and, once the queue has ended ``_IDLE_SLICES`` slices in a row
+        empty with nothing in them late, a window of slices is tried so: kept whole when
+        none of its requests waits longer than the tolerance (the next window twice as
+        long), else up to the slice of its first late request, and the slices go on.
+        """
         state: PixelState = kw["state"]
         period = cyc.period_us
+        step = self.slice_us
+        lat = float(kw["latency_us"])
         noise_q = noise_off[:-1].copy()
-        n_slices = max(1, math.ceil(period / self.slice_us))
+        n_slices = max(1, math.ceil(period / step))
         chunks: list[np.ndarray] = []
         lost = 0
         longest = 0.0
-        j0 = min(int(free_until_us // self.slice_us), n_slices - 1)
-        if j0 >= 1:
-            counts, st, sp, off, lost = cyc.fire(noise_q=noise_q, t_stop=j0 * self.slice_us,
-                                                 **kw)
-            ev = gather_sorted(off, counts, st, sp, pix, width=width,
-                               t_first_us=t_start_us + cyc.t_lo, nbins=cyc.nbins)
+
+        def free_run(j_from: int, j_stop: int) -> tuple[np.ndarray, int]:
+            """Fire slices ``j_from + 1 .. j_stop`` with the pixels independent: their events
+            fire from ``j_from step`` on and before ``j_stop step``, so only those time
+            bins are sorted."""
+            final = j_stop >= n_slices
+            counts, st, sp, off, n_lost = cyc.fire(
+                noise_q=noise_q, t_stop=None if final else j_stop * step, **kw)
+            b0 = max(0, math.floor(j_from * step + lat) - cyc.t_lo)
+            b1 = cyc.nbins if final else min(cyc.nbins, math.floor(j_stop * step + lat)
+                                             - cyc.t_lo + 1)
+            return gather_sorted(off, counts, st, sp, pix, width=width,
+                                 t_first_us=t_start_us + cyc.t_lo, nbins=b1 - b0,
+                                 first_bin=b0), n_lost
+
+        j = min(int(free_until_us // step), n_slices - 1)  # slices 1 .. j are done
+        if j >= 1:
+            ev, lost = free_run(0, j)
             wait, self.free_at = self._serve(ev["t"], self.free_at)
             longest = float(wait.max(initial=0.0))
             chunks.append(ev)
-        for j in range(j0 + 1, n_slices + 1):
+        idle = 0
+        window = _IDLE_SLICES
+        while j < n_slices:
+            if idle >= _IDLE_SLICES:
+                # the queue has been empty a while: a window with the pixels independent
+                saved = state.copy()
+                saved_q = noise_q.copy()
+                j_stop = min(j + window, n_slices)
+                ev, n_lost = free_run(j, j_stop)
+                wait, free_at = self._serve(ev["t"], self.free_at)
+                bad = np.flatnonzero(wait > self.tolerance_us)
+                if not bad.size:
+                    self.free_at = free_at
+                    chunks.append(ev)
+                    lost += n_lost
+                    j = j_stop
+                    window *= 2
+                    continue
+                state.restore(saved)
+                noise_q[:] = saved_q
+                j_late = int((float(ev["t"][bad[0]]) - t_start_us) // step)
+                if j_late > j:
+                    ev, n_lost = free_run(j, j_late)
+                    wait, self.free_at = self._serve(ev["t"], self.free_at)
+                    longest = max(longest, float(wait.max(initial=0.0)))
+                    chunks.append(ev)
+                    lost += n_lost
+                    j = j_late
+                idle = 0
+                window = _IDLE_SLICES
+                continue
+            j += 1
             final = j == n_slices
             counts, st, sp, off, n_lost = cyc.fire(
-                noise_q=noise_q, t_stop=None if final else j * self.slice_us, held=True,
-                **kw)
+                noise_q=noise_q, t_stop=None if final else j * step, held=True, **kw)
             lost += n_lost
             who = np.flatnonzero(counts)
-            if who.size == 0:
-                continue
-            bins = st[off[who]].astype(np.int64)
-            order = np.argsort(bins, kind="stable")
-            who, bins = who[order], bins[order]
-            t = t_start_us + cyc.t_lo + bins
-            wait, self.free_at = self._serve(t, self.free_at)
-            longest = max(longest, float(wait.max()))
-            read = (t // self.step) * self.step + wait - t_start_us  # µs from the cycle's start
-            p = pix[who]
-            shift = period if final else 0.0
-            state.ready[p] = np.maximum(state.ready[p], read + self.refractory_us - shift)
-            if not final:
-                state.next_fire[p] = state.ready[p]
-            ev = np.empty(who.size, dtype=EVENT_DTYPE)
-            ev["x"] = p % width
-            ev["y"] = p // width
-            ev["t"] = t
-            ev["p"] = sp[off[who]]
-            chunks.append(ev)
+            late = 0.0
+            if who.size:
+                bins = st[off[who]].astype(np.int64)
+                order = np.argsort(bins, kind="stable")
+                who, bins = who[order], bins[order]
+                t = t_start_us + cyc.t_lo + bins
+                wait, self.free_at = self._serve(t, self.free_at)
+                late = float(wait.max())
+                longest = max(longest, late)
+                read = (t // self.step) * self.step + wait - t_start_us  # from the cycle's start
+                p = pix[who]
+                shift = period if final else 0.0
+                state.ready[p] = np.maximum(state.ready[p], read + self.refractory_us - shift)
+                if not final:
+                    state.next_fire[p] = state.ready[p]
+                ev = np.empty(who.size, dtype=EVENT_DTYPE)
+                ev["x"] = p % width
+                ev["y"] = p // width
+                ev["t"] = t
+                ev["p"] = sp[off[who]]
+                chunks.append(ev)
+            quiet = late <= self.tolerance_us and self.free_at <= t_start_us + j * step
+            idle = idle + 1 if quiet else 0
         self.held_cycles += 1
         self.busy = longest > self.tolerance_us
         out = np.concatenate(chunks) if chunks else np.zeros(0, EVENT_DTYPE)
         return out, lost
+
+
+_IDLE_SLICES = 8  # empty slices before a held cycle tries a window of independent pixels
 
 
 def simulate_cycles(

@@ -931,7 +931,7 @@ _FINE_BITS = 8  # a coarse time bin holds 2**_FINE_BITS µs bins
 
 
 @nb.njit(cache=True, parallel=True, error_model="numpy")
-def _gather(offsets, counts, slot_t, slot_p, xs, ys, t_first, nbins, keys, out):
+def _gather(offsets, counts, slot_t, slot_p, first_bin, xs, ys, t_first, nbins, keys, out):
     """Counting sort of the slots by time bin in two cache-friendly passes: each pixel's
     events go to their coarse bin as packed keys (listed pixel, fine bin, polarity), then each
     coarse bin's keys go to their place in ``out``. Stable: listed-pixel order, then
@@ -947,7 +947,7 @@ def _gather(offsets, counts, slot_t, slot_p, xs, ys, t_first, nbins, keys, out):
         for i in range(b * bsize, min(npix, (b + 1) * bsize)):
             o = offsets[i]
             for k in range(counts[i]):
-                hist[b, slot_t[o + k]] += 1
+                hist[b, slot_t[o + k] - first_bin] += 1
     # start of every µs bin in the output, and of every block's share of a coarse bin
     start = np.empty((ncoarse << fb) + 1, dtype=np.int64)
     cpos = np.empty((nblk, ncoarse), dtype=np.int64)
@@ -968,7 +968,7 @@ def _gather(offsets, counts, slot_t, slot_p, xs, ys, t_first, nbins, keys, out):
             o = offsets[i]
             head = np.int64(i) << (fb + 1)
             for k in range(counts[i]):
-                tb = np.int64(slot_t[o + k])
+                tb = np.int64(slot_t[o + k]) - first_bin
                 cb = tb >> fb
                 d = cpos[b, cb]
                 cpos[b, cb] = d + 1
@@ -988,17 +988,40 @@ def _gather(offsets, counts, slot_t, slot_p, xs, ys, t_first, nbins, keys, out):
             out[d].t = tbase + fine
 
 
+@nb.njit(cache=True)
+def _bin_range(offsets, counts, slot_t):
+    lo = np.int64(2**62)
+    hi = np.int64(-2**62)
+    for i in range(counts.shape[0]):
+        o = offsets[i]
+        for k in range(counts[i]):
+            b = np.int64(slot_t[o + k])
+            lo = min(lo, b)
+            hi = max(hi, b)
+    return lo, hi
+
+
 def gather_sorted(offsets: np.ndarray, counts: np.ndarray, slot_t: np.ndarray,
                   slot_p: np.ndarray, pix: np.ndarray, *, width: int, t_first_us: int,
-                  nbins: int) -> np.ndarray:
+                  nbins: int, first_bin: int | None = None) -> np.ndarray:
     """Events (``EVENT_DTYPE``) from the slots, sorted by time by a counting sort over the
-    ``nbins`` µs bins (bin ``b`` is time ``t_first_us + b``). Stable: among equal times,
-    listed-pixel order, then each pixel's own order."""
+    ``nbins`` µs bins (bin ``b`` is time ``t_first_us + b``). With ``first_bin`` only the
+    bins from it on, ``nbins`` of them, where the events are expected, are counted (widened
+    to every event's bin). Stable: among equal times, listed-pixel order, then each
+    pixel's own order."""
     n = int(counts.sum())
+    if first_bin is None:
+        first_bin = 0
+    elif n:
+        lo, hi = _bin_range(offsets, counts, slot_t)
+        end = max(first_bin + nbins, hi + 1)
+        first_bin = min(first_bin, lo)
+        nbins = end - first_bin
     out = np.empty(n, dtype=EVENT_DTYPE)
     ys, xs = np.divmod(pix, width)
     # keys hold (listed pixel, fine bin, polarity): 32 bits while they fit
     key_dtype = np.uint32 if pix.size < 1 << (31 - _FINE_BITS) else np.int64
-    _gather(offsets, counts, slot_t, slot_p, xs.astype(np.uint16), ys.astype(np.uint16),
-            np.int64(t_first_us), np.int64(nbins), np.empty(n, dtype=key_dtype), out)
+    _gather(offsets, counts, slot_t, slot_p, np.int64(first_bin), xs.astype(np.uint16),
+            ys.astype(np.uint16), np.int64(t_first_us + first_bin), np.int64(nbins),
+            np.empty(n, dtype=key_dtype), out)
     return out
