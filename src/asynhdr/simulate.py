@@ -454,7 +454,8 @@ class HeldReadout:
     in slices of ``refractory_us`` (a pixel fires at most once in a slice), each slice's
     requests are read in time order, and each requesting pixel's dead time is set from
     its read; the slices before the first request that waited longer than the tolerance
-    are fired at once, as in the first pass. After a cycle in which events waited longer
+    are fired at once, as in the first pass, and so are windows of slices once the queue
+    has stayed empty (:meth:`held_cycle`). After a cycle in which events waited longer
     than the tolerance even so (``busy``), the next cycle goes to the slices at once: the
     independent pass would be thrown away.
     """
