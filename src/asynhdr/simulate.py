@@ -298,11 +298,8 @@ class _Engine:
                                   self.wb[sel], log_domain=True, pieces=None,
                                   run_key=self.run_key[sel], run_off=run_off,
                                   run_tab=run_tab, **geometry)  # type: ignore[arg-type]
-            kw = dict(c_on=c_on, c_off=c_off, state=state, alive=alive, noise_off=nz.offsets,
-                      noise_t=nz.t_us, noise_pol=nz.polarity, seed=seed, cycle=cycle,
-                      reset_noise_sigma=sensor.reset_noise_sigma,
-                      refractory_us=sensor.refractory_us, latency_us=sensor.latency_us,
-                      jitter_sigma_us=sensor.jitter_sigma_us)
+            kw = {k: v for k, v in common.items() if k not in geometry}
+            kw.update(noise_off=nz.offsets, noise_t=nz.t_us, noise_pol=nz.polarity)
             if readout is not None and readout.busy:
                 return readout.held_cycle(cyc, kw, nz.offsets, pix, width=self.width,
                                           t_start_us=t_start_us)

@@ -42,6 +42,7 @@ direction the two interpolated rows do not agree on are scanned point by point.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numba as nb
 import numpy as np
@@ -784,7 +785,9 @@ class CycleFiring:
         start; default the cycle's end, which also moves ``state`` to the next cycle);
         ``state`` is advanced in place, ``noise_q`` (per listed pixel, starting at
         ``noise_off[:-1]``) too. With ``held`` each pixel fires at most one event and stays
-        pending until the caller sets its ``ready`` (:class:`_fire`'s docstring).
+        pending until the caller sets its ``ready`` (:class:`_fire`'s docstring), and only
+        the pixels whose next event may fire before ``t_stop`` are run (the others'
+        ``counts`` are 0).
 
         Returns ``(counts, slot_t, slot_p, offsets, lost)``: listed pixel ``i`` fired
         ``counts[i]`` events, in slots ``offsets[i] ..`` (time bins from ``t_lo``,
@@ -793,18 +796,27 @@ class CycleFiring:
         n = self.n
         final = t_stop is None or t_stop >= self.period_us
         stop = self.period_us if final else float(t_stop)  # type: ignore[arg-type]
-        inv_off, inv_lvl, inv_tab = self.index
-        if held:
-            return self._fire_held(stop, final, c_on=c_on, c_off=c_off, state=state,
-                                   alive=alive, noise_off=noise_off, noise_q=noise_q,
-                                   noise_t=noise_t, noise_pol=noise_pol, seed=seed,
-                                   cycle=cycle, reset_noise_sigma=reset_noise_sigma,
-                                   refractory_us=refractory_us, latency_us=latency_us,
-                                   jitter_sigma_us=jitter_sigma_us)
-        bound = np.empty(n, dtype=np.int64)
-        slot_dtype = np.int32  # a slot holds a time bin (one compiled kernel for any cycle)
-        sliced = self._sliced or not final
+        sliced = held or self._sliced or not final
         self._sliced = sliced
+        inputs = (c_on, c_off, state, alive, noise_off, noise_q, noise_t, noise_pol, seed,
+                  cycle, reset_noise_sigma, refractory_us, latency_us, jitter_sigma_us)
+        if held:
+            if self._held_buffers is None:  # one slot per pixel, kept from slice to slice
+                self._held_buffers = (np.arange(n + 1, dtype=np.int64),
+                                      np.empty(n, dtype=np.int32), np.empty(n, dtype=np.int8),
+                                      np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int8),
+                                      np.zeros(n, dtype=np.int64))
+            offsets, slot_t, slot_p, counts, overflow, lost = self._held_buffers
+            counts[:] = 0
+            lost[:] = 0
+            act = (np.arange(n, dtype=np.int64) if final else
+                   np.flatnonzero(state.next_fire[self.pix] < stop).astype(np.int64))
+            self._kernel(act, _block_order(act.size, _BLOCK), stop, final, True, True,
+                         self._held_buffers, inputs)
+            if overflow.any():
+                raise RuntimeError("pixel model: a held pixel fired more than one event")
+            return counts, slot_t, slot_p, offsets, int(lost.sum())
+        bound = np.empty(n, dtype=np.int64)
         c_scale = 1.0
         saved = state.copy(slices=sliced)
         saved_q = noise_q.copy()
@@ -817,20 +829,12 @@ class CycleFiring:
             offsets = np.zeros(n + 1, dtype=np.int64)
             np.cumsum(bound, out=offsets[1:])
             total = int(offsets[-1])
-            slot_t = np.empty(total, dtype=slot_dtype)
-            slot_p = np.empty(total, dtype=np.int8)
-            counts = np.empty(n, dtype=np.int64)
-            overflow = np.zeros(n, dtype=np.int8)
-            lost = np.empty(n, dtype=np.int64)
-            _fire(self.pix, act, self.order, self.s, self.idx, self.rows, self.ia, self.ib, self.wa,
-                  self.wb, self.log_domain, self.mode, self.d1, self.d2, self.pieces,
-                  self.run_key, self.run_off, self.run_tab, inv_off, inv_lvl, inv_tab, c_on,
-                  c_off, state.ref, state.ready, state.pending, state.pending_z, state.resume,
-                  state.done, state.next_fire, alive, noise_off, noise_q, noise_t, noise_pol,
-                  np.uint64(seed), np.int64(cycle), float(reset_noise_sigma), float(refractory_us),
-                  float(latency_us), float(jitter_sigma_us), self.period_us, stop, final,
-                  bool(held), sliced, offsets, slot_t, slot_p, counts, overflow, lost,
-                  np.int64(self.t_lo), np.int64(self.nbins), _BLOCK)
+            # a slot holds a time bin as int32 (one compiled kernel for any cycle length)
+            buffers = (offsets, np.empty(total, dtype=np.int32), np.empty(total, dtype=np.int8),
+                       np.empty(n, dtype=np.int64), np.zeros(n, dtype=np.int8),
+                       np.empty(n, dtype=np.int64))
+            self._kernel(act, self.order, stop, final, False, sliced, buffers, inputs)
+            _, slot_t, slot_p, counts, overflow, lost = buffers
             if not overflow.any():
                 return counts, slot_t, slot_p, offsets, int(lost.sum())
             state.restore(saved, slices=sliced)
@@ -838,42 +842,24 @@ class CycleFiring:
             c_scale *= 0.5
         raise RuntimeError("pixel model: the event bound was exceeded repeatedly")
 
-    def _fire_held(self, stop: float, final: bool, *, c_on: np.ndarray, c_off: np.ndarray,
-                   state: PixelState, alive: np.ndarray, noise_off: np.ndarray,
-                   noise_q: np.ndarray, noise_t: np.ndarray, noise_pol: np.ndarray,
-                   seed: int, cycle: int, reset_noise_sigma: float, refractory_us: float,
-                   latency_us: float, jitter_sigma_us: float
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
-        """:meth:`fire` with ``held``: one slot per pixel, and only the pixels whose next
-        event may fire before ``stop`` (every pixel in the ``final`` slice) are run; the
-        others' ``counts`` are 0."""
-        n = self.n
-        self._sliced = True
-        if self._held_buffers is None:  # one slot per pixel, kept from slice to slice
-            self._held_buffers = (np.arange(n + 1, dtype=np.int64), np.empty(n, dtype=np.int32),
-                                  np.empty(n, dtype=np.int8), np.zeros(n, dtype=np.int64),
-                                  np.zeros(n, dtype=np.int8), np.zeros(n, dtype=np.int64))
-        offsets, slot_t, slot_p, counts, overflow, lost = self._held_buffers
-        counts[:] = 0
-        lost[:] = 0
-        if final:
-            act = np.arange(n, dtype=np.int64)
-        else:
-            act = np.flatnonzero(state.next_fire[self.pix] < stop).astype(np.int64)
+    def _kernel(self, act: np.ndarray, order: np.ndarray, stop: float, final: bool,
+                held: bool, sliced: bool, buffers: tuple[np.ndarray, ...],
+                inputs: tuple[Any, ...]) -> None:
+        """One call of :func:`_fire` for the listed pixels ``act`` into ``buffers``
+        (offsets, slot times, slot polarities, counts, overflow, lost)."""
+        (c_on, c_off, state, alive, noise_off, noise_q, noise_t, noise_pol, seed, cycle,
+         sigma, refractory_us, latency_us, jitter_sigma_us) = inputs
+        offsets, slot_t, slot_p, counts, overflow, lost = buffers
         inv_off, inv_lvl, inv_tab = self.index
-        order = _block_order(act.size, _BLOCK)
         _fire(self.pix, act, order, self.s, self.idx, self.rows, self.ia, self.ib, self.wa,
               self.wb, self.log_domain, self.mode, self.d1, self.d2, self.pieces, self.run_key,
               self.run_off, self.run_tab, inv_off, inv_lvl, inv_tab, c_on, c_off, state.ref,
               state.ready, state.pending, state.pending_z, state.resume, state.done,
               state.next_fire, alive, noise_off, noise_q, noise_t, noise_pol, np.uint64(seed),
-              np.int64(cycle), float(reset_noise_sigma), float(refractory_us),
-              float(latency_us), float(jitter_sigma_us), self.period_us, stop, final, True,
-              True, offsets, slot_t, slot_p, counts, overflow, lost, np.int64(self.t_lo),
+              np.int64(cycle), float(sigma), float(refractory_us), float(latency_us),
+              float(jitter_sigma_us), self.period_us, stop, final, held, sliced, offsets,
+              slot_t, slot_p, counts, overflow, lost, np.int64(self.t_lo),
               np.int64(self.nbins), _BLOCK)
-        if overflow.any():
-            raise RuntimeError("pixel model: a held pixel fired more than one event")
-        return counts, slot_t, slot_p, offsets, int(lost.sum())
 
 
 def fire_cycle(
