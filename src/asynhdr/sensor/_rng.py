@@ -11,7 +11,8 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-__all__ = ["hash_normal", "hash_normal2", "hash_uniform", "seed_from"]
+__all__ = ["hash_normal", "hash_normal2", "hash_normal2_at", "hash_stream", "hash_uniform",
+           "seed_from"]
 
 _M1 = np.uint64(0xBF58476D1CE4E5B9)
 _M2 = np.uint64(0x94D049BB133111EB)
@@ -44,12 +45,16 @@ def hash_normal(seed, a, b, c):
 
 
 @nb.njit(cache=True, inline="always", error_model="numpy")
-def hash_normal2(seed, a, b, c):
-    """Two independent standard normals (both Box-Muller outputs) for one counter."""
-    # the same values as hash_uniform(seed, a, b, 2c) and (.., 2c + 1), the mixes of
-    # (seed, a, b) done once
+def hash_stream(seed, a, b):
+    """The mix of ``(seed, a, b)`` that :func:`hash_normal2_at` continues: computed once
+    for a stream of draws."""
     z = _mix(np.uint64(seed) + _GOLD * np.uint64(a + 1))
-    z = _mix(z + _GOLD * np.uint64(b + 1))
+    return _mix(z + _GOLD * np.uint64(b + 1))
+
+
+@nb.njit(cache=True, inline="always", error_model="numpy")
+def hash_normal2_at(z, c):
+    """:func:`hash_normal2` at counter ``c`` of the stream ``z = hash_stream(seed, a, b)``."""
     z1 = _mix(z + _GOLD * np.uint64(2 * c + 1))
     z2 = _mix(z + _GOLD * np.uint64(2 * c + 2))
     u1 = (np.float64(z1 >> np.uint64(11)) + 0.5) * (1.0 / 9007199254740992.0)
@@ -57,6 +62,13 @@ def hash_normal2(seed, a, b, c):
     r = np.sqrt(-2.0 * np.log(u1))
     ang = 2.0 * np.pi * u2
     return r * np.cos(ang), r * np.sin(ang)
+
+
+@nb.njit(cache=True, inline="always", error_model="numpy")
+def hash_normal2(seed, a, b, c):
+    """Two independent standard normals (both Box-Muller outputs) for one counter."""
+    # the same values as hash_uniform(seed, a, b, 2c) and (.., 2c + 1)
+    return hash_normal2_at(hash_stream(seed, a, b), c)
 
 
 def seed_from(rng: np.random.Generator) -> int:

@@ -48,7 +48,7 @@ import numba as nb
 import numpy as np
 
 from asynhdr.events import EVENT_DTYPE
-from asynhdr.sensor._rng import hash_normal2
+from asynhdr.sensor._rng import hash_normal2_at, hash_stream
 
 __all__ = ["CycleFiring", "PixelState", "cycle_pieces", "fire_cycle", "gather_sorted"]
 
@@ -522,11 +522,12 @@ def _fire(pix, act, order, s, idx, rows, ia, ib, wa, wb, log_domain, mode, d1, d
             zc = -1
             zj = 0.0
             zr = 0.0
+            zs = hash_stream(seed, p, cycle)
             while True:
                 if draws and zc != cnt:
                     # the next event's draws, before the search that does not need them:
                     # their arithmetic overlaps its loads
-                    zj, zr = hash_normal2(seed, p, cycle, cnt)
+                    zj, zr = hash_normal2_at(zs, cnt)
                     zc = cnt
                 chi = thi - _EPS if log_domain else thi * (1.0 - _EPS)
                 clo = tlo + _EPS if log_domain else tlo * (1.0 + _EPS)
