@@ -111,6 +111,36 @@ def test_cli_scheduler_local_writes_the_serial_images(tmp_path: Path) -> None:
     assert r.exit_code == 2 and "scheduler" in r.output
 
 
+def test_cli_scheduler_passes_the_rig_and_ml_writes_every_cycle(tmp_path: Path) -> None:
+    # a .raw file carries no rig: ml needs --rig, and the workers must get it too; the
+    # recording's name has a dot, which must not eat the cycle number of the images
+    rec = tmp_path / "scene.v1.raw"
+    rig = tmp_path / "rig.toml"
+    r = runner.invoke(app, ["simulate", "chart", "-o", str(rec), "--width", "40",
+                            "--height", "24", "--preset", "ideal", "--n-cycles", "3",
+                            "--rig-out", str(rig)])
+    assert r.exit_code == 0, r.output
+    a, b = tmp_path / "serial", tmp_path / "spread"
+    args = ["--method", "ml", "--rig", str(rig), "--formats", "exr,png"]
+    r = runner.invoke(app, ["reconstruct", str(rec), "-o", str(a), *args])
+    assert r.exit_code == 0, r.output
+    r = runner.invoke(app, ["reconstruct", str(rec), "-o", str(b), *args,
+                            "--scheduler", "local", "--workers", "2"])
+    assert r.exit_code == 0, r.output
+    names = sorted(p.name for p in a.iterdir())
+    assert names == sorted(p.name for p in b.iterdir())
+    for i in range(3):
+        for suffix in (".exr", ".png", "_sigma.exr", "_valid.png"):
+            assert f"scene.v1_ml_{i:04d}{suffix}" in names
+    for name in names:
+        if name.endswith(".exr"):
+            np.testing.assert_array_equal(read_image(a / name), read_image(b / name))
+        else:
+            assert (a / name).read_bytes() == (b / name).read_bytes(), name
+    first = read_image(a / "scene.v1_ml_0000.exr")
+    assert np.isfinite(first).mean() > 0.9
+
+
 def test_cli_evaluate_on_workers_gives_the_serial_figures(tmp_path: Path) -> None:
     import json
 

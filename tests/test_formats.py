@@ -301,3 +301,10 @@ def test_convert_streams_between_formats(tmp_path: Path, simulated: Recording,
     with caplog.at_level(logging.WARNING):
         convert(src, tmp_path / "d.dat")
     assert "3 trigger edges left out" in caplog.text
+    # milliseconds with fractions: --time-unit settles what the guess cannot
+    ms = tmp_path / "ms.txt"
+    ms.write_text("1.5 1 2 1\n2.25 3 4 0\n")
+    r = runner.invoke(app, ["convert", str(ms), str(tmp_path / "ms.npz"), "--time-unit", "ms",
+                            "--width", "8", "--height", "8"])
+    assert r.exit_code == 0, r.output
+    assert open_recording(tmp_path / "ms.npz").events["t"].tolist() == [1_500, 2_250]

@@ -94,38 +94,55 @@ def simulate_distributed(client: Any, scene: Any, *, n_parts: int | None = None,
 
 
 def _reconstruct_run(path: str, first: int, starts: np.ndarray, window_us: float,
-                     options: dict[str, Any]) -> list[tuple[int, int, np.ndarray]]:
+                     options: dict[str, Any], source_options: dict[str, Any]
+                     ) -> list[tuple[int, int, np.ndarray, dict[str, Any] | None]]:
     from asynhdr.io import open_source
     from asynhdr.io.cmap import load_cmap
 
     opts = dict(options)
     cmap = opts.pop("cmap", None)
-    src = open_source(path)
+    ml = opts.get("ml_options")
+    sink: dict[str, Any] | None = None
+    if ml is not None and "out" in ml:  # ml's per-cycle outputs, sent back with each image
+        sink = {}
+        opts["ml_options"] = dict(ml, out=sink)
+    src = open_source(path, **source_options)
     plan = reconstruct_cycles(src, windows=CycleWindows(starts, window_us),
                               cmap=load_cmap(cmap) if cmap else None, **opts)
-    return [(first + i, int(start), img) for i, start, img in plan]
+    return [(first + i, int(start), img, dict(sink) if sink is not None else None)
+            for i, start, img in plan]
 
 
 def reconstruct_distributed(client: Any, path: str | os.PathLike[str], windows: CycleWindows,
                             *, n_parts: int | None = None,
                             cmap: str | os.PathLike[str] | None = None,
                             progress: Callable[[str, int, int], None] | None = None,
+                            source_options: dict[str, Any] | None = None,
                             **options: Any) -> Iterator[tuple[int, int, np.ndarray]]:
     """The images of :func:`asynhdr.reconstruct.reconstruct_cycles` over ``windows``
     (found once by the caller), the cycles split into ``n_parts`` runs of consecutive
     cycles (default: twice the workers) reconstructed on the workers from the file at
-    ``path``. Yields ``(cycle, start_us, image)`` in cycle order. ``options``: method, k,
-    thresholds, ... as for ``reconstruct_cycles``; ``cmap`` a c-map file."""
+    ``path``, opened with ``source_options`` (``width``, ``height``, ... of
+    :func:`asynhdr.io.open_source`). Yields ``(cycle, start_us, image)`` in cycle order.
+    ``options``: method, k, thresholds, rig, ml_options, ... as for
+    ``reconstruct_cycles``; ``cmap`` a c-map file. As in the serial run, an ``"out"`` dict
+    in ``ml_options`` holds the yielded cycle's uncertainty and flags when it is yielded."""
     n = windows.n_cycles
     parts = min(n, n_parts or 2 * _n_workers(client))
     opts = dict(options, cmap=str(cmap) if cmap else None)
+    ml = opts.get("ml_options")
+    sink = ml.get("out") if ml is not None else None
     futures = [client.submit(_reconstruct_run, str(Path(path)), a,
-                             windows.start_us[a:b], windows.window_us, opts, pure=False)
+                             windows.start_us[a:b], windows.window_us, opts,
+                             dict(source_options or {}), pure=False)
                for a, b in _split(n, parts) if b > a]
     done = 0
     for fut in futures:
-        for item in fut.result():
-            yield item
+        for i, start, img, extra in fut.result():
+            if sink is not None and extra is not None:
+                sink.clear()
+                sink.update(extra)
+            yield i, start, img
             done += 1
             if progress is not None:
                 progress("reconstruct", done, n)

@@ -7,7 +7,7 @@ from pathlib import Path
 import typer
 
 from asynhdr.cli._app import app
-from asynhdr.cli.core import check_outputs, console, fail, progress_bar
+from asynhdr.cli.core import TIME_UNIT_HELP, check_outputs, console, fail, progress_bar
 
 __all__ = ["convert"]
 
@@ -20,6 +20,7 @@ def convert(
     evt: str = typer.Option("3.0", "--evt", help="EVT version of a .raw target: 3.0 | 2.0."),
     width: int | None = typer.Option(None, help="Sensor width, for files without geometry."),
     height: int | None = typer.Option(None, help="Sensor height, for files without geometry."),
+    time_unit: str | None = typer.Option(None, "--time-unit", help=TIME_UNIT_HELP),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing target."),
 ) -> None:
     """Copy an event recording into another format, chunk by chunk (memory flat in file
@@ -30,7 +31,7 @@ def convert(
     check_outputs([target], overwrite=overwrite)
     options = {"evt": evt} if target.suffix.lower() == ".raw" else {}
     try:
-        src = open_source(source, width=width, height=height)
+        src = open_source(source, width=width, height=height, time_unit=time_unit)
         with progress_bar() as update:
             write_recording(target, src, overwrite=overwrite, progress=update, **options)
     except (ValueError, OSError) as exc:

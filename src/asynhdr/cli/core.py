@@ -103,6 +103,9 @@ def check_outputs(paths: list[Path], *, overwrite: bool) -> None:
             fail(str(exc))
 
 
+TIME_UNIT_HELP = "Text/HDF5 time unit: us, ms, s (text: also auto)."
+
+
 def _parse_formats(formats: str) -> list[str]:
     out = [f.strip().lower().lstrip(".") for f in formats.split(",") if f.strip()]
     bad = [f for f in out if f not in IMAGE_FORMATS]
@@ -115,7 +118,7 @@ def _write_images(img: np.ndarray, stem: Path, formats: list[str], meta: dict[st
     from asynhdr.io.images import write_image
 
     for f in formats:
-        write_image(stem.with_suffix("." + f), img, metadata=meta if f != "png" else None)
+        write_image(Path(f"{stem}.{f}"), img, metadata=meta if f != "png" else None)
 
 
 # --------------------------------------------------------------------------- demo

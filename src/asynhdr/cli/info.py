@@ -15,7 +15,7 @@ from rich.table import Table
 
 from asynhdr._atomic import atomic_path
 from asynhdr.cli._app import app
-from asynhdr.cli.core import as_flags, check_outputs
+from asynhdr.cli.core import TIME_UNIT_HELP, as_flags, check_outputs
 from asynhdr.segment import Cycles, NoCyclesError, find_cycles
 from asynhdr.source import Scan
 
@@ -126,8 +126,7 @@ def info(
     width: int | None = typer.Option(None, "--width", help="Sensor width (pixels), for files "
                                      "without geometry."),
     height: int | None = typer.Option(None, "--height", help="Sensor height (pixels)."),
-    time_unit: str | None = typer.Option(None, "--time-unit", help="Text/HDF5 time unit: us, "
-                                         "ms, s (text: also auto)."),
+    time_unit: str | None = typer.Option(None, "--time-unit", help=TIME_UNIT_HELP),
     period_us: float | None = typer.Option(None, "--period-us", help="Modulation period "
                                            "(µs), when known."),
     plot: Path | None = typer.Option(None, "--plot", help="Save an event-rate plot (PNG)."),

@@ -79,7 +79,7 @@ class MlOutputs:
         from asynhdr.io.images import write_image
 
         for f in self.formats:
-            write_image(stem.with_suffix("." + f), img, allow_nan=True, tonemap=tonemap,
+            write_image(Path(f"{stem}.{f}"), img, allow_nan=True, tonemap=tonemap,
                         metadata=meta if f in ("exr", "tif") else None)
         sigma = self.extra.get("sigma_log")
         flags = self.extra.get("flags")

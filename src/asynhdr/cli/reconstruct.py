@@ -13,6 +13,7 @@ import typer
 from asynhdr.cli._app import app
 from asynhdr.cli.core import (
     IMAGE_FORMATS,
+    TIME_UNIT_HELP,
     _parse_formats,
     check_outputs,
     console,
@@ -25,11 +26,11 @@ from asynhdr.sensor.params import SensorParams
 __all__ = ["calibrate", "reconstruct"]
 
 
-def _open(path: Path, width: int | None = None, height: int | None = None) -> Any:
+def _open(path: Path, **source_options: Any) -> Any:
     from asynhdr.io import open_source
 
     try:
-        return open_source(path, width=width, height=height)
+        return open_source(path, **source_options)
     except (ValueError, OSError) as exc:
         fail(str(exc))
 
@@ -58,6 +59,7 @@ def reconstruct(
                                      "recording)."),
     width: int | None = typer.Option(None, help="Sensor width, for files without geometry."),
     height: int | None = typer.Option(None, help="Sensor height, for files without geometry."),
+    time_unit: str | None = typer.Option(None, "--time-unit", help=TIME_UNIT_HELP),
     formats: str = typer.Option("exr,png", help=f"Comma-separated, from {IMAGE_FORMATS}."),
     tonemap: str = typer.Option("log", help="PNG tone mapping: log | reinhard | linear."),
     demosaic: str = typer.Option("malvar", help="Colour recordings (a CFA in the metadata): "
@@ -97,7 +99,8 @@ def reconstruct(
     stem = f"{recording.stem}_{method}_"
     existing = sorted(out.glob(f"{stem}[0-9][0-9][0-9][0-9].*")) if out.is_dir() else []
     check_outputs([*existing, out / f"{stem}0000.{fmts[0]}"], overwrite=overwrite)
-    src = _open(recording, width, height)
+    source_options: dict[str, Any] = dict(width=width, height=height, time_unit=time_unit)
+    src = _open(recording, **source_options)
     m = METHODS[method]
     meta: dict[str, Any] = {"source": str(recording), "method": method, "k": k,
                             "cmap": str(cmap) if cmap else None, "radiometric": m.radiometric}
@@ -112,10 +115,12 @@ def reconstruct(
     try:
         cm = load_cmap(cmap) if cmap is not None else None
         with contextlib.ExitStack() as stack, progress_bar() as update:
-            plan = reconstruct_cycles(src, method=method, k=k, cmap=cm, window_us=window_us,
-                                      period_us=period_us, single=single,
-                                      threshold_on=threshold_on, threshold_off=threshold_off,
-                                      progress=update, rig=mlo.rig, ml_options=opts)
+            # one set of options for the serial and the distributed run
+            common: dict[str, Any] = dict(method=method, k=k, threshold_on=threshold_on,
+                                          threshold_off=threshold_off, rig=mlo.rig,
+                                          ml_options=opts)
+            plan = reconstruct_cycles(src, cmap=cm, window_us=window_us, period_us=period_us,
+                                      single=single, progress=update, **common)
             unit = mlo.unit or plan.metadata.get("radiance_unit", "relative")
             warm = plan.windows.warmup
             colour = bool(plan.metadata.get("cfa")) and demosaic != "none"
@@ -125,8 +130,8 @@ def reconstruct(
 
                 client = stack.enter_context(scheduler_client(scheduler, workers=workers))
                 images = reconstruct_distributed(
-                    client, recording, plan.windows, method=method, k=k, cmap=cmap,
-                    threshold_on=threshold_on, threshold_off=threshold_off, progress=update)
+                    client, recording, plan.windows, cmap=cmap, progress=update,
+                    source_options=source_options, **common)
             written = 0
             for i, _, img in images:
                 if skip_warmup and i < warm:

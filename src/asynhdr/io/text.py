@@ -214,8 +214,10 @@ def _decide_unit(st: _State, t: np.ndarray, linenos: list[int]) -> None:
         return
     if span < SECONDS_SPAN_LIMIT:
         st.unit, st.detected = "s", True
-        logger.info("%s: times have fractions and span %.6g < %g; reading them as seconds",
-                    st.name, span, SECONDS_SPAN_LIMIT)
+        # a guess that is wrong by 1000x for milliseconds with fractions: said, not logged
+        logger.warning("%s: times have fractions and span %.6g < %g; reading them as "
+                       "seconds (a guess: pass the time unit, e.g. --time-unit ms, if they "
+                       "are not)", st.name, span, SECONDS_SPAN_LIMIT)
         return
     raise ValueError(
         f"{st.name}: cannot tell the time unit: times from line {linenos[0]} have fractions "
