@@ -179,6 +179,33 @@ def test_evt3_stream_cut_inside_a_vector_group_is_reported(tmp_path: Path,
     assert "vector group" not in caplog.text
 
 
+def test_raw_cut_inside_its_header_is_refused(tmp_path: Path,
+                                             caplog: pytest.LogCaptureFixture) -> None:
+    path = tmp_path / "whole.raw"
+    write_recording(path, Recording(_rec().events, 16, 12))
+    data = path.read_bytes()
+    n_head = pr.raw_info(path)["header_bytes"]
+    second = data.index(b"\n") + 1  # the cut falls inside the header's second line
+    cut = tmp_path / "cut.raw"
+    cut.write_bytes(data[:second + 4])
+    r = _Run("info", cut)
+    assert r.exit_code == 2
+    assert "cut.raw: the file ends inside its header" in r.output
+    assert "Files asynhdr reads" not in r.output  # a .raw file: the formats list is noise
+    with pytest.raises(ValueError, match="ends inside its header"):
+        open_source(cut)
+    # cut at the end of a header line, before '% end': no events, and said so
+    lines = tmp_path / "lines.raw"
+    lines.write_bytes(data[:second])
+    with caplog.at_level(logging.WARNING):
+        assert open_recording(lines, width=16, height=12).events.size == 0
+    assert "lines.raw: the file ends after 1 header lines without '% end'" in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        assert open_recording(path).events.size == _rec().events.size
+    assert "header lines" not in caplog.text and data[n_head - 6:n_head] == b"% end\n"
+
+
 def test_dat_cut_inside_a_record_is_reported(tmp_path: Path,
                                              caplog: pytest.LogCaptureFixture) -> None:
     path = tmp_path / "whole.dat"

@@ -55,10 +55,12 @@ def _option_flags() -> dict[str, str]:
 
 def as_flags(msg: str) -> str:
     """``msg`` with the library's parameter names turned into the command line's flags:
-    ``period_us`` -> ``--period-us``, ``single=True`` -> ``--single`` (names with an
-    underscore, and ``name=True``, so that ordinary words stay as they are)."""
+    ``period_us`` -> ``--period-us``, ``single=True`` -> ``--single``, ``width=...`` ->
+    ``--width ...`` (names with an underscore, and ``name=True`` or ``name=...``, so that
+    ordinary words stay as they are)."""
     for name, flag in _option_flags().items():
         msg = re.sub(rf"(?<![\w-]){re.escape(name)}=(True|False)(?![\w-])", flag, msg)
+        msg = re.sub(rf"(?<![\w-]){re.escape(name)}=\.\.\.", f"{flag} ...", msg)
         if "_" in name:
             msg = re.sub(rf"(?<![\w-]){re.escape(name)}(?![\w-])", flag, msg)
     return msg

@@ -15,7 +15,7 @@ from rich.table import Table
 
 from asynhdr._atomic import atomic_path
 from asynhdr.cli._app import app
-from asynhdr.cli.core import TIME_UNIT_HELP, as_flags, check_outputs
+from asynhdr.cli.core import TIME_UNIT_HELP, as_flags, check_outputs, fail
 from asynhdr.segment import Cycles, NoCyclesError, find_cycles
 from asynhdr.source import Scan
 
@@ -160,9 +160,8 @@ def info(
                 how = as_flags(f"{exc.reason}; pass {hint}")
         if plot is not None:
             save_rate_plot(plot, str(file), src.scan(), cycles)
-    except (FileNotFoundError, ValueError) as exc:
-        err.print(f"[red]error:[/red] {as_flags(str(exc))}", highlight=False)
-        raise typer.Exit(code=1) from None
+    except (ValueError, OSError) as exc:
+        fail(str(exc))
     if as_json:
         out = dict(description)
         out["cycles"] = cycles.summary() if cycles is not None else None

@@ -265,7 +265,10 @@ def open_source(
     try:
         header = fmt.header(p, opts)
     except ValueError as exc:
-        if fmt.name == "raw" and ("format" in str(exc) or "header" in str(exc)):
+        text = str(exc)
+        # a file that may be another format under a .raw name: say what asynhdr reads
+        if fmt.name == "raw" and ("event format" in text or "not a Prophesee" in text
+                                  or "no Prophesee header" in text):
             raise ValueError(f"{exc}. Files asynhdr reads: {_supported_text()}") from exc
         raise
     if header.width is None:

@@ -30,6 +30,7 @@ packets are read in file order, so a damaged file data table is never read.
 from __future__ import annotations
 
 import html
+import logging
 import re
 import struct
 from collections.abc import Iterator
@@ -42,6 +43,8 @@ import numpy as np
 
 from asynhdr import _pool
 from asynhdr._recycle import Recycler
+
+logger = logging.getLogger(__name__)
 
 __all__ = ["DV_EVENT_DTYPE", "TRIGGER_TYPE_NAMES", "Container", "open_container"]
 
@@ -252,14 +255,29 @@ def open_container(path: str | Path) -> Container:
 Window = tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 
+_CUTS_REPORTED: set[tuple[str, int]] = set()  # (file, size): warned once per process
+
+
+def _warn_cut(c: Container, at: int) -> None:
+    key = (c.name, c.size)
+    if key not in _CUTS_REPORTED:
+        _CUTS_REPORTED.add(key)
+        logger.warning("%s: the file ends at byte %d inside the packet at byte %d: it was "
+                       "cut; the packets before it are read", c.name, c.size, at)
+
+
 def _windows(c: Container) -> Iterator[Window]:
     """The file read window by window from the first packet on (memory flat in file
     size): ``(file offset of the window, its bytes, and the positions in it, sizes and
     stream ids of the packets lying wholly in it)``. The window's bytes are valid until
     the next window is asked for; a packet larger than the window makes it grow. A
-    packet header that does not fit, or a file cut short, raises ``ValueError`` once the
-    packets before it are yielded."""
+    packet that runs past the data table, or past the end of a file whose table lies within
+    it, raises ``ValueError`` once the packets before it are yielded; past the end of a file
+    cut short (its table beyond the end, or none) it ends the windows with a warning."""
     name, size, end = c.name, c.size, c.end
+    # the file ends before the data table its header names (or it names none): a packet
+    # that runs past the end was cut, and the packets before it are the recording
+    cut = not 0 < c.table <= size
     pos = c.first
     buf = _BUFFERS.get(max(1, min(_WINDOW_BYTES, size)), _BYTE)
     with open(c.path, "rb", buffering=0) as f:
@@ -276,10 +294,16 @@ def _windows(c: Container) -> Iterator[Window]:
             if status == 2:
                 a = pos + int(nxt)
                 sid, m = struct.unpack("<ii", bytes(buf[int(nxt) : int(nxt) + 8]))
+                if cut and m > 0:
+                    _warn_cut(c, a)
+                    return
                 raise ValueError(f"{name}: packet at byte {a} (stream {sid}) claims {m} bytes; "
                                  f"the data end at byte {end}")
             if status == 1:
                 if pos + got >= size:  # the window reached the end of the file
+                    if cut:
+                        _warn_cut(c, pos + int(nxt))
+                        return
                     raise ValueError(f"{name}: packet at byte {pos + int(nxt)} cut short: the "
                                      f"file ends at byte {size}")
                 if int(nxt) == 0:  # one packet larger than the window

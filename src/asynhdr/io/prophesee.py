@@ -185,6 +185,9 @@ def _read_header(f: BinaryIO, name: str) -> tuple[list[str], int]:
         if at >= len(buf):
             more = f.read(1 << 16)
             if not more:
+                if lines:
+                    logger.warning("%s: the file ends after %d header lines without '%% end' "
+                                   "and without events: cut short?", name, len(lines))
                 return lines, at
             buf += more
         if buf[at : at + 1] != b"%":
@@ -198,7 +201,10 @@ def _read_header(f: BinaryIO, name: str) -> tuple[list[str], int]:
                 )
             more = f.read(max(1 << 16, len(buf)))
             if not more:
-                break
+                raise ValueError(
+                    f"{name}: the file ends inside its header (the line at byte {at} has no "
+                    "end): cut short, nothing to read"
+                )
             start = len(buf)
             buf += more
             nl = buf.find(b"\n", start)
