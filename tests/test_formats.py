@@ -301,6 +301,25 @@ def test_convert_streams_between_formats(tmp_path: Path, simulated: Recording,
     with caplog.at_level(logging.WARNING):
         convert(src, tmp_path / "d.dat")
     assert "3 trigger edges left out" in caplog.text
+    # a camera's clock since 1970 does not fit a .raw file: --start-at-zero shifts it,
+    # and the metadata keeps the shift
+    ev = simulated.events.copy()
+    ev["t"] += 1_605_537_493_718_345
+    tr = simulated.triggers.copy()
+    tr["t"] += 1_605_537_493_718_345
+    epoch = tmp_path / "epoch.npz"
+    write_recording(epoch, Recording(ev, simulated.width, simulated.height, triggers=tr))
+    r = runner.invoke(app, ["convert", str(epoch), str(tmp_path / "e.raw")])
+    assert r.exit_code == 2 and "--start-at-zero" in r.output
+    assert not (tmp_path / "e.raw").exists()
+    r = runner.invoke(app, ["convert", str(epoch), str(tmp_path / "e.raw"), "--start-at-zero"])
+    assert r.exit_code == 0, r.output
+    back = open_recording(tmp_path / "e.raw")
+    shift = back.metadata["time_shift_us"]
+    assert shift == min(int(ev["t"].min()), int(tr["t"].min())) and shift > 1e15
+    np.testing.assert_array_equal(back.events["t"] + shift, ev["t"])
+    np.testing.assert_array_equal(back.triggers["t"] + shift, tr["t"])
+    assert back.events[["x", "y", "p"]].tolist() == ev[["x", "y", "p"]].tolist()
     # milliseconds with fractions: --time-unit settles what the guess cannot
     ms = tmp_path / "ms.txt"
     ms.write_text("1.5 1 2 1\n2.25 3 4 0\n")

@@ -21,6 +21,11 @@ def convert(
     width: int | None = typer.Option(None, help="Sensor width, for files without geometry."),
     height: int | None = typer.Option(None, help="Sensor height, for files without geometry."),
     time_unit: str | None = typer.Option(None, "--time-unit", help=TIME_UNIT_HELP),
+    start_at_zero: bool = typer.Option(False, "--start-at-zero", help="Subtract the first "
+                                       "time (events and triggers) from every time, for "
+                                       "targets that count from the recording's start "
+                                       "(.raw, .dat: a camera clock since 1970 does not "
+                                       "fit); the metadata keeps it (time_shift_us)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing target."),
 ) -> None:
     """Copy an event recording into another format, chunk by chunk (memory flat in file
@@ -33,7 +38,15 @@ def convert(
     try:
         src = open_source(source, width=width, height=height, time_unit=time_unit)
         with progress_bar() as update:
-            write_recording(target, src, overwrite=overwrite, progress=update, **options)
+            shift = 0
+            if start_at_zero:
+                scan = src.scan(progress=update)
+                firsts = [t for t in (scan.min_t_us,
+                                      int(scan.triggers["t"][0]) if scan.triggers.size
+                                      else None) if t is not None]
+                shift = min(firsts) if firsts else 0
+            write_recording(target, src, overwrite=overwrite, progress=update,
+                            time_shift_us=shift, **options)
     except (ValueError, OSError) as exc:
         fail(str(exc))
     console.print(f"{source} ({src.header.format}, {src.width}x{src.height}) -> {target}")

@@ -315,6 +315,7 @@ def write_recording(
     format: str | None = None,
     overwrite: bool = True,
     progress: Progress | None = None,
+    time_shift_us: int = 0,
     **options: Any,
 ) -> None:
     """Write a recording, or any source streamed chunk by chunk, atomically, in the
@@ -325,7 +326,10 @@ def write_recording(
     (``evt="2.0"``: EVT 2.0), ``.h5`` asynhdr's HDF5, ``.hdf5`` Metavision's HDF5,
     ``.npz``, ``.txt``/``.csv`` text, ``.dat`` Prophesee DAT. ``options`` go to the
     format's writer. ``overwrite`` False refuses an existing file. ``progress("write",
-    events_written, total)`` is called after each chunk.
+    events_written, total)`` is called after each chunk. ``time_shift_us`` is subtracted
+    from every event and trigger time (a camera's clock since 1970 does not fit the
+    formats that count from the recording's start); the metadata's ``time_shift_us``
+    adds it up, so that ``t + time_shift_us`` is the time as recorded.
     """
     p = Path(path)
     if format is None:
@@ -337,12 +341,22 @@ def write_recording(
                              + ", ".join(f.name for f in FORMATS if f.writer))
     assert fmt.writer is not None
     src = as_source(recording)
-    writer = fmt.writer(p, width=src.width, height=src.height, metadata=src.metadata,
+    shift = int(time_shift_us)
+    metadata = src.metadata
+    if shift:
+        metadata = dict(metadata or {})
+        metadata["time_shift_us"] = int(metadata.get("time_shift_us", 0)) + shift
+    writer = fmt.writer(p, width=src.width, height=src.height, metadata=metadata,
                         overwrite=overwrite, **options)
     total = src._known_count()
     done = 0
     with writer as w:
         for ev, tr in src.chunks():
+            if shift:
+                ev = ev.copy()
+                ev["t"] -= shift
+                tr = tr.copy()
+                tr["t"] -= shift
             w.write(ev, tr)
             done += int(ev.size)
             if progress is not None:

@@ -1430,7 +1430,8 @@ class RawWriter(FileWriter):
         if t_first < 0 or t_last > _MAX_TIME_US:
             raise ValueError(
                 f"{name}: times {t_first}..{t_last} µs are outside what {title} holds "
-                f"(0..{_MAX_TIME_US} µs, 4.8 hours); subtract a start time before writing"
+                f"(0..{_MAX_TIME_US} µs, 4.8 hours); subtract a start time before writing "
+                "(write_recording's time_shift_us, asynhdr convert --start-at-zero)"
             )
         if self._last_t is not None and t_first < self._last_t:
             raise ValueError(
