@@ -320,6 +320,9 @@ def test_convert_streams_between_formats(tmp_path: Path, simulated: Recording,
     np.testing.assert_array_equal(back.events["t"] + shift, ev["t"])
     np.testing.assert_array_equal(back.triggers["t"] + shift, tr["t"])
     assert back.events[["x", "y", "p"]].tolist() == ev[["x", "y", "p"]].tolist()
+    r = runner.invoke(app, ["convert", str(src), str(tmp_path / "n.h5"), "--evt", "2.0"])
+    assert r.exit_code == 2 and "--evt 2.0: applies to a .raw target only" in r.output
+    assert not (tmp_path / "n.h5").exists()
     # milliseconds with fractions: --time-unit settles what the guess cannot
     ms = tmp_path / "ms.txt"
     ms.write_text("1.5 1 2 1\n2.25 3 4 0\n")

@@ -999,6 +999,14 @@ def test_cli_info_errors(tmp_path: Path) -> None:
     res = runner.invoke(app, ["info", str(nogeo)])
     assert res.exit_code == 2 and "nogeo.raw" in res.output
     assert "--width ... and --height ..." in res.output, res.output
+    empty = tmp_path / "empty.txt"
+    empty.write_text("")
+    res = runner.invoke(app, ["info", str(empty)])
+    assert res.exit_code == 0, res.output
+    assert "None" not in res.output and "holds no events" in res.output
+    assert "unknown" in res.output  # the geometry
+    res = runner.invoke(app, ["info", str(empty), "--plot", str(tmp_path / "rate.xyz")])
+    assert res.exit_code == 2 and "rate.xyz" in res.output and ".png" in res.output
 
 
 def _aedat4_variants(fuzz_dir: Path, compression: str = "LZ4") -> list[bytes]:

@@ -17,7 +17,8 @@ def convert(
     source: Path = typer.Argument(..., help="Event recording to read (any supported format)."),
     target: Path = typer.Argument(..., help="File to write: .raw (EVT 3.0), .h5 (asynhdr "
                                   "HDF5), .hdf5 (Metavision HDF5), .npz, .txt/.csv, .dat."),
-    evt: str = typer.Option("3.0", "--evt", help="EVT version of a .raw target: 3.0 | 2.0."),
+    evt: str | None = typer.Option(None, "--evt", help="EVT version of a .raw target: 3.0 "
+                                   "(default) | 2.0."),
     width: int | None = typer.Option(None, help="Sensor width, for files without geometry."),
     height: int | None = typer.Option(None, help="Sensor height, for files without geometry."),
     time_unit: str | None = typer.Option(None, "--time-unit", help=TIME_UNIT_HELP),
@@ -34,7 +35,10 @@ def convert(
     from asynhdr.io import open_source, write_recording
 
     check_outputs([target], overwrite=overwrite)
-    options = {"evt": evt} if target.suffix.lower() == ".raw" else {}
+    raw_target = target.suffix.lower() == ".raw"
+    if evt is not None and not raw_target:
+        fail(f"--evt {evt}: applies to a .raw target only, not {target.name}")
+    options = {"evt": evt or "3.0"} if raw_target else {}
     try:
         src = open_source(source, width=width, height=height, time_unit=time_unit)
         with progress_bar() as update:

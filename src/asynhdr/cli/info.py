@@ -25,8 +25,8 @@ logger = logging.getLogger(__name__)
 
 
 def save_rate_plot(path: Path, name: str, scan: Scan, cycles: Cycles | None) -> None:
-    """Event rate over time (1 ms bins) with cycle starts and trigger edges, as PNG
-    (written atomically)."""
+    """Event rate over time (1 ms bins) with cycle starts and trigger edges, in the image
+    format the extension names (.png, .pdf, .svg, ...; written atomically)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -60,7 +60,19 @@ def save_rate_plot(path: Path, name: str, scan: Scan, cycles: Cycles | None) -> 
     ax.legend(loc="upper right", fontsize=8)
     fig.tight_layout()
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
+        fig.savefig(tmp, format=_plot_format(path))
+
+
+def _plot_format(path: Path) -> str:
+    """The image format ``path``'s extension names (one matplotlib writes), else error."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    fmt = path.suffix.lower().lstrip(".")
+    known = FigureCanvasAgg.get_supported_filetypes()
+    if fmt not in known:
+        raise ValueError(f"{path}: --plot writes {', '.join('.' + k for k in sorted(known))};"
+                         f" not {path.suffix or 'a file without an extension'}")
+    return fmt
 
 
 def _fmt_rate(hz: float | None) -> str:
@@ -80,8 +92,11 @@ def _table(info: dict[str, Any], cycles: Cycles | None, how: str) -> Table:
     t.add_row("file", info["path"])
     t.add_row("format", f"{info['format']} — {info['format_description']}")
     t.add_row("sensor", info["sensor"] or "-")
-    t.add_row("geometry", f"{info['width']} x {info['height']} (width x height, "
-                          f"{info['geometry_source']})")
+    if info["width"] is None:
+        t.add_row("geometry", "unknown (the file gives none; --width and --height set it)")
+    else:
+        t.add_row("geometry", f"{info['width']} x {info['height']} (width x height, "
+                              f"{info['geometry_source']})")
     t.add_row("events", f"{info['events']:,} ({info['on_events']:,} ON, "
                         f"{info['off_events']:,} OFF)")
     if info["events"]:
@@ -129,7 +144,8 @@ def info(
     time_unit: str | None = typer.Option(None, "--time-unit", help=TIME_UNIT_HELP),
     period_us: float | None = typer.Option(None, "--period-us", help="Modulation period "
                                            "(µs), when known."),
-    plot: Path | None = typer.Option(None, "--plot", help="Save an event-rate plot (PNG)."),
+    plot: Path | None = typer.Option(None, "--plot", help="Save an event-rate plot (.png, "
+                                     ".pdf, .svg, ...)."),
     as_json: bool = typer.Option(False, "--json", help="Print JSON instead of a table."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing plot."),
 ) -> None:
@@ -140,6 +156,10 @@ def info(
     err = Console(stderr=True)
     if plot is not None:
         check_outputs([plot], overwrite=overwrite)
+        try:
+            _plot_format(plot)
+        except ValueError as exc:
+            fail(str(exc))
     try:
         src = open_source(file, width=width, height=height, time_unit=time_unit)
         with Progress(SpinnerColumn(), TextColumn("{task.description}"), console=err,
@@ -156,8 +176,11 @@ def info(
                 how = _HOW[cycles.source]
             except NoCyclesError as exc:
                 cycles = None
-                hint = "--single" if period_us is not None else "--period-us or --single"
-                how = as_flags(f"{exc.reason}; pass {hint}")
+                if not description["events"]:
+                    how = "the file holds no events"
+                else:
+                    hint = "--single" if period_us is not None else "--period-us or --single"
+                    how = as_flags(f"{exc.reason}; pass {hint}")
         if plot is not None:
             save_rate_plot(plot, str(file), src.scan(), cycles)
     except (ValueError, OSError) as exc:
