@@ -68,6 +68,21 @@ def test_simulate_on_a_local_cluster_equals_serial(client) -> None:
     assert spread.metadata == serial.metadata
 
 
+def test_a_held_readout_is_simulated_whole_on_the_cluster(client) -> None:
+    from asynhdr.distributed import simulate_distributed
+    from asynhdr.sensor.params import get_preset
+
+    chart = step_chart(width=48, height=32)
+    held = get_preset("davis346").with_(name="davis346", arbiter="hold")
+    kw = dict(sensor=held, n_cycles=2, rng=3, sensor_seed=1)
+    serial = simulate(chart, **kw)
+    spread = simulate_distributed(client, chart, n_parts=3, **kw)
+    assert serial.metadata["readout"]["pixels_held"]
+    assert serial.metadata["readout"]["held_cycles"] == 2
+    assert spread.events.tobytes() == serial.events.tobytes()
+    assert spread.metadata == serial.metadata
+
+
 def test_reconstruct_on_a_local_cluster_equals_serial(client, tmp_path: Path) -> None:
     from asynhdr.distributed import reconstruct_distributed
 

@@ -32,7 +32,8 @@ import numpy as np
 
 from asynhdr.events import Recording
 from asynhdr.reconstruct import CycleWindows, reconstruct_cycles
-from asynhdr.simulate import finish_recording, simulate_cycles
+from asynhdr.sensor.params import get_preset
+from asynhdr.simulate import HeldReadout, finish_recording, simulate_cycles
 
 __all__ = ["map_ordered", "reconstruct_distributed", "scheduler_client",
            "simulate_distributed"]
@@ -81,11 +82,23 @@ def simulate_distributed(client: Any, scene: Any, *, n_parts: int | None = None,
                          **kwargs: Any) -> Recording:
     """:func:`asynhdr.simulate.simulate` with the sensor split into ``n_parts`` pixel
     ranges (default: the number of workers) simulated on the workers; the result is the
-    serial one's, bit for bit. ``kwargs`` as for ``simulate`` (no ``progress``)."""
+    serial one's, bit for bit. A readout that holds its pixels couples them all
+    (:class:`asynhdr.simulate.HeldReadout`): such a sensor is simulated whole, by one
+    worker. ``kwargs`` as for ``simulate`` (no ``progress``)."""
     kwargs.pop("progress", None)
     radiance = getattr(scene, "radiance", scene)
     h, w = np.asarray(radiance).shape[-2:]
     parts = n_parts or _n_workers(client)
+    sensor = kwargs.get("sensor", "v2e")
+    sensor = get_preset(sensor) if isinstance(sensor, str) else sensor
+    moving = kwargs.get("frame_times_us") is not None or getattr(scene, "times_us", None) \
+        is not None
+    engine = kwargs.get("engine", "auto")
+    engine = ("stepped" if moving else "exact") if engine == "auto" else engine
+    if parts > 1 and HeldReadout.applies(sensor, engine):
+        logger.info("the readout holds its pixels, which couples them all: one worker "
+                    "simulates the whole sensor")
+        parts = 1
     ranges = _split(h * w, parts)
     shared = client.scatter(scene, broadcast=True)
     futures = [client.submit(simulate_cycles, shared, pixels=r, pure=False, **kwargs)

@@ -403,9 +403,6 @@ def simulate(
                             panel=panel, pre_emphasis=pre_emphasis)
         seen = sensor.region_of_interest() if roi else sensor
         if hold:
-            if scheduler is not None:
-                fail("--hold needs the whole sensor in one process: a waiting pixel is held "
-                     "by every other pixel's events; leave out --scheduler")
             if engine == "stepped":
                 fail("--hold needs the exact engine (a static scene); the stepped engine "
                      "fires its pixels chunk by chunk")
