@@ -308,6 +308,27 @@ def test_existing_outputs_need_overwrite_and_read_only_ones_stay(tmp_path: Path)
     assert r.exit_code == 2 and "exists; pass --overwrite" in r.output
 
 
+def test_a_failed_write_removes_the_folders_it_made(tmp_path: Path) -> None:
+    from asynhdr._atomic import atomic_path
+
+    kept = tmp_path / "kept"
+    kept.mkdir()
+    with pytest.raises(RuntimeError), atomic_path(kept / "a" / "b" / "f.txt") as tmp:
+        tmp.write_text("half")
+        raise RuntimeError("the writer failed")
+    assert list(kept.iterdir()) == []  # a and a/b made for it and gone; kept stays
+    with atomic_path(kept / "a" / "b" / "f.txt") as tmp:
+        tmp.write_text("whole")
+    assert (kept / "a" / "b" / "f.txt").read_text() == "whole"
+    # from the command line: a conversion that fails leaves nothing behind
+    ev = make_events([0, 1], [0, 1], [1, -1], [0, 2**40])
+    src = tmp_path / "late.npz"
+    write_recording(src, Recording(ev, 4, 4))
+    r = _Run("convert", src, tmp_path / "new" / "sub" / "late.raw")
+    assert r.exit_code == 2 and "--start-at-zero" in r.output
+    assert not (tmp_path / "new").exists()
+
+
 def test_temporary_files_of_a_killed_writer_are_swept(tmp_path: Path) -> None:
     """SIGKILL while writing leaves the temporary file; the next write into the folder
     removes it (its process no longer runs). A live process's file is left alone."""

@@ -101,12 +101,14 @@ def atomic_path(
     """Yield a temporary path beside ``path``; on success rename it onto ``path``.
 
     On any exception the temporary file is removed and ``path`` is left as it was,
-    so no half-written file is ever visible under the final name. ``suffix``
+    so no half-written file is ever visible under the final name; the folders made for
+    ``path`` are removed again where they are empty. ``suffix``
     defaults to the target's own (some writers pick the format from it).
     ``overwrite`` False refuses an existing ``path`` (see :func:`check_output`).
     Temporary files that killed processes left in the folder are swept first.
     """
     target = check_output(path, overwrite=overwrite)
+    made = [p for p in [target.parent, *target.parent.parents] if not p.exists()]
     target.parent.mkdir(parents=True, exist_ok=True)
     sweep(target.parent)
     sfx = "" if suffix is None else suffix
@@ -126,4 +128,7 @@ def atomic_path(
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
+        for folder in made:  # the folders made for it, deepest first, where still empty
+            with contextlib.suppress(OSError):
+                folder.rmdir()
         raise
