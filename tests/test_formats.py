@@ -284,6 +284,19 @@ def test_metavision_ecf_filter_named_when_missing(tmp_path: Path) -> None:
                         codec="ecf")
 
 
+def test_a_converted_file_keeps_its_camera(tmp_path: Path) -> None:
+    ev = make_events([1, 2, 3], [0, 1, 2], [1, -1, 1], [10, 20, 30])
+    cam = tmp_path / "cam.raw"
+    write_recording(cam, Recording(ev, 4, 4),
+                    header_extra={"plugin_name": "hal_plugin_gen41_evk3", "serial_number": "7"})
+    want = "plugin_name=hal_plugin_gen41_evk3, serial_number=7"
+    assert open_source(cam).describe()["sensor"] == want
+    for ext in (".h5", ".aedat4", ".dat", ".npz", ".raw"):
+        out = tmp_path / f"copy{ext}"
+        convert(cam, out)
+        assert open_source(out).describe()["sensor"] == want, ext
+
+
 def test_convert_streams_between_formats(tmp_path: Path, simulated: Recording,
                                          caplog: pytest.LogCaptureFixture) -> None:
     src = tmp_path / "a.h5"

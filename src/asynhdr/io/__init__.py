@@ -212,7 +212,9 @@ class FileSource(Source):
             "path": self.name,
             "format": h.format,
             "format_description": self.format.description,
-            "sensor": h.sensor,
+            # the file's own camera, else the one its metadata names (a converted file)
+            "sensor": h.sensor if h.sensor not in (None, "asynhdr") else (
+                (self.metadata or {}).get("camera") or h.sensor),
             "width": self.width if sc.events or h.width is not None else None,
             "height": self.height if sc.events or h.height is not None else None,
             "geometry_source": h.geometry_source,

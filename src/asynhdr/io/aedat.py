@@ -458,9 +458,11 @@ class AedatWriter(FileWriter):
     (``asynhdr_metadata``). Events are written in packets of up to 32,768."""
 
     def __init__(self, path: str | os.PathLike[str], *, width: int, height: int,
-                 metadata: dict[str, Any] | None = None, camera: str = "asynhdr",
+                 metadata: dict[str, Any] | None = None, camera: str | None = None,
                  overwrite: bool = True) -> None:
         super().__init__(path, overwrite=overwrite)
+        if camera is None:  # the recording's camera (a converted file's), else asynhdr
+            camera = str((metadata or {}).get("camera") or "asynhdr")
         self.width, self.height = check_geometry(str(path), width, height,
                                                  "the writer's arguments")
         head = _io_header(_xml(self.width, self.height, camera,

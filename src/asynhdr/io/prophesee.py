@@ -457,6 +457,9 @@ class _RawInfo:
         stored = _stored_metadata(self.fields, self.name)
         self.metadata: dict[str, Any] = stored if stored is not None else {
             "format": self.format, "source": self.name, "header": dict(self.fields)}
+        camera = _sensor_text(self.fields)
+        if camera is not None:  # kept by a conversion into a format without these fields
+            self.metadata.setdefault("camera", camera)
 
     def as_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {
