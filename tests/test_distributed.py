@@ -99,7 +99,7 @@ def test_reconstruct_on_a_local_cluster_equals_serial(client, tmp_path: Path) ->
         assert a.tobytes() == b.tobytes()
 
 
-def test_cli_scheduler_local_writes_the_serial_images(tmp_path: Path) -> None:
+def test_cli_scheduler_local_writes_the_serial_images(client, tmp_path: Path) -> None:
     rec = tmp_path / "rec.h5"
     common = ["--width", "48", "--height", "32", "--preset", "v2e", "--n-cycles", "4"]
     r = runner.invoke(app, ["simulate", "chart", "-o", str(rec), *common])
@@ -115,7 +115,7 @@ def test_cli_scheduler_local_writes_the_serial_images(tmp_path: Path) -> None:
     assert runner.invoke(app, ["reconstruct", str(rec), "-o", str(a),
                                "--formats", "exr"]).exit_code == 0
     r = runner.invoke(app, ["reconstruct", str(rec), "-o", str(b), "--formats", "exr",
-                            "--scheduler", "local", "--workers", "2"])
+                            "--scheduler", client.scheduler.address])
     assert r.exit_code == 0, r.output
     fa, fb = sorted(a.glob("*.exr")), sorted(b.glob("*.exr"))
     assert [p.name for p in fa] == [p.name for p in fb] and len(fa) == 4
@@ -126,7 +126,8 @@ def test_cli_scheduler_local_writes_the_serial_images(tmp_path: Path) -> None:
     assert r.exit_code == 2 and "scheduler" in r.output
 
 
-def test_cli_scheduler_passes_the_rig_and_ml_writes_every_cycle(tmp_path: Path) -> None:
+def test_cli_scheduler_passes_the_rig_and_ml_writes_every_cycle(client, tmp_path: Path
+                                                                ) -> None:
     # a .raw file carries no rig: ml needs --rig, and the workers must get it too; the
     # recording's name has a dot, which must not eat the cycle number of the images
     rec = tmp_path / "scene.v1.raw"
@@ -139,8 +140,9 @@ def test_cli_scheduler_passes_the_rig_and_ml_writes_every_cycle(tmp_path: Path) 
     args = ["--method", "ml", "--rig", str(rig), "--formats", "exr,png"]
     r = runner.invoke(app, ["reconstruct", str(rec), "-o", str(a), *args])
     assert r.exit_code == 0, r.output
+    # the module's cluster, by its address: the CLI's way to a running scheduler
     r = runner.invoke(app, ["reconstruct", str(rec), "-o", str(b), *args,
-                            "--scheduler", "local", "--workers", "2"])
+                            "--scheduler", client.scheduler.address])
     assert r.exit_code == 0, r.output
     names = sorted(p.name for p in a.iterdir())
     assert names == sorted(p.name for p in b.iterdir())
