@@ -88,3 +88,51 @@ def test_bad_parameters_are_named(tmp_path: Path, flag: str, value: str, message
     r = run("simulate", "chart", "-o", out, "--width", "40", "--height", "20", flag, value)
     assert r.exit_code == 2 and message in r.output
     assert not out.exists()
+
+
+def test_simulate_takes_the_rig_files_sensor_and_refuses_what_contradicts_it(
+        tmp_path: Path) -> None:
+    rig = Path(__file__).parents[1] / "docs" / "rigs" / "imx636_5fps.toml"
+    out = tmp_path / "r.h5"
+    r = run("simulate", "flat:100", "--rig", rig, "-o", out, "--width", "8", "--height", "6",
+            "--n-cycles", "1")
+    assert r.exit_code == 0, r.output
+    assert open_recording(out).metadata["sensor"]["name"] == "imx636"  # not the default v2e
+    for extra, word in ((["--period-us", "10000"], "--period-us"),
+                        (["--panel", "tn"], "--panel"),
+                        (["--preset", "v2e"], "--preset v2e")):
+        bad = tmp_path / "bad.h5"
+        r = run("simulate", "flat:100", "--rig", rig, "-o", bad, *extra)
+        assert r.exit_code == 2 and word in r.output and not bad.exists(), r.output
+    # --rig-out: checked with the recording, never the recording itself
+    same = tmp_path / "same.h5"
+    r = run("simulate", "flat:100", "-o", same, "--rig-out", same, "--width", "4",
+            "--height", "4")
+    assert r.exit_code == 2 and "--rig-out" in r.output and not same.exists()
+    (tmp_path / "old.toml").write_text("keep")
+    r = run("simulate", "flat:100", "-o", tmp_path / "new.h5", "--rig-out",
+            tmp_path / "old.toml", "--width", "4", "--height", "4")
+    assert r.exit_code == 2 and (tmp_path / "old.toml").read_text() == "keep"
+    assert not (tmp_path / "new.h5").exists()
+    # a moving scene is stepped: it cannot hold, and says so instead of dropping --hold
+    r = run("simulate", "flat:100", "--hold", "--motion", "50,0", "-o", tmp_path / "m.h5",
+            "--width", "4", "--height", "4")
+    assert r.exit_code == 2 and "--hold" in r.output
+
+
+def test_reconstruct_checks_its_options_before_writing(tmp_path: Path) -> None:
+    rec = tmp_path / "r.h5"
+    assert run("simulate", "flat:100", "-o", rec, "--width", "8", "--height", "6",
+               "--n-cycles", "2", "--preset", "ideal").exit_code == 0
+    for extra, word in ((["--tonemap", "foo"], "--tonemap"),
+                        (["--period-us", "-5"], "--period-us"),
+                        (["--method", "ml", "--formats", "exr,hdr"], "--formats hdr")):
+        out = tmp_path / "img"
+        r = run("reconstruct", rec, "-o", out, *extra)
+        assert r.exit_code == 2 and word in r.output, r.output
+        assert not out.exists()
+
+
+def test_an_error_is_printed_as_written(tmp_path: Path) -> None:
+    r = run("info", tmp_path / "[x]" / "absent.raw")
+    assert r.exit_code == 2 and "[x]/absent.raw" in r.output

@@ -332,3 +332,11 @@ def test_simulated_recording_without_triggers_recovers_period_and_starts() -> No
     nearest = np.where(np.abs(cyc.start_us[k] - truth) < np.abs(cyc.start_us[k - 1] - truth),
                        cyc.start_us[k], cyc.start_us[k - 1])
     assert np.max(np.abs(nearest - truth)) <= 0.01 * 20_000
+
+
+def test_no_period_to_fold_by_is_an_error_not_a_crash() -> None:
+    from asynhdr.segment import _fold
+
+    for bad in (float("nan"), 0.0, -5.0, float("inf")):
+        with pytest.raises(ValueError, match="no period to fold"):
+            _fold(np.ones(16), 10.0, bad, 0.0)

@@ -481,6 +481,9 @@ def _template_onset(template: np.ndarray) -> float:
 
 def _fold(counts: np.ndarray, bin_us: float, period_us: float, offset_us: float) -> np.ndarray:
     """Mean counts per phase bin over one period; phase 0 at ``offset_us`` from bin 0's start."""
+    if not (math.isfinite(period_us) and period_us > 0 and math.isfinite(offset_us)):
+        raise ValueError(f"cycles_from_rate: no period to fold the event rate by "
+                         f"(period {period_us:g} µs, offset {offset_us:g} µs)")
     nf = max(8, round(period_us / bin_us))
     centers = (np.arange(counts.size) + 0.5) * bin_us - offset_us
     ph = np.floor(np.mod(centers, period_us) / period_us * nf).astype(np.int64)
@@ -613,6 +616,9 @@ def cycles_from_rate(
         pk = np.array(peaks)
         strong = pk >= 0.25 * float(np.median(pk))
         a_fit, b_fit, inl = _robust_line(ka[strong], la[strong], p if fixed else None)
+        if not (math.isfinite(b_fit) and b_fit > 0 and math.isfinite(a_fit)):
+            raise ValueError("cycles_from_rate: the cycles' onsets fit no period "
+                             f"(fitted {b_fit:g} µs)")
         p = b_fit
         a_us = a_fit  # template phase-0 of cycle k = a_us + k p
         res = {"phi_us": phi_us, "tmpl": tmpl, "ka": ka, "la": la, "strong": strong,

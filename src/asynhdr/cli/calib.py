@@ -22,10 +22,10 @@ def calibrate_thresholds(
                                          "in the rig's unit (once for all, or once per "
                                          "recording, in order)."),
     rig: Path = typer.Option(..., "--rig", help="Rig file (TOML) of the captures; its "
-                             "[sensor] table is the pixel model (else --preset)."),
+                             "\\[sensor] table is the pixel model (else --preset)."),
     out: Path = typer.Option(..., "--out", "-o", help="Calibration file to write (.npz)."),
     preset: str | None = typer.Option(None, help="Sensor preset when the rig file has no "
-                                      "[sensor] table."),
+                                      "\\[sensor] table."),
     sweep: Path | None = typer.Option(None, help="Voltage sweep CSV (voltage_v, "
                                       "transmittance_1, transmittance_2) to fit the panels' "
                                       "curves into the same file."),

@@ -18,6 +18,7 @@ from typing import Any, NoReturn
 import numpy as np
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn
 from rich.progress import Progress as RichProgress
 from rich.table import Table
@@ -70,7 +71,8 @@ def fail(msg: str) -> NoReturn:
     """Print an error (library parameter names as this command's flags) and exit with
     status 2. The message is one line, never broken by the console (a file's path in it
     stays whole for whoever copies it or searches a log)."""
-    err_console.print(f"[bold red]error:[/] {as_flags(msg)}", highlight=False, soft_wrap=True)
+    err_console.print(f"[bold red]error:[/] {escape(as_flags(msg))}", highlight=False,
+                      soft_wrap=True)  # the message as written: "[x]" in it is not markup
     raise typer.Exit(code=2)
 
 
@@ -336,7 +338,8 @@ def simulate(
                              "(.h5, .npz, .raw EVT 3.0, .txt)."),
     width: int = typer.Option(640, help="Sensor width (pixels)."),
     height: int = typer.Option(480, help="Sensor height (pixels)."),
-    preset: str = typer.Option(_default(_simulate, "sensor"), help="Sensor preset."),
+    preset: str | None = typer.Option(None, help="Sensor preset (default: the rig file's "
+                                      f"sensor, else {_default(_simulate, 'sensor')})."),
     n_cycles: int = typer.Option(3, help="Modulation cycles."),
     period_us: int | None = typer.Option(None, help=f"Cycle period (µs); default "
                                          f"{Rig.period_us:,}."),
@@ -395,15 +398,40 @@ def simulate(
     from asynhdr.sensor.params import get_preset
     from asynhdr.simulate import simulate as run
 
-    check_outputs([out], overwrite=overwrite)
+    if rig_out is not None and rig_out.resolve() == out.resolve():
+        fail(f"--rig-out {rig_out}: the same file as --out; name another")
+    check_outputs([out] + ([rig_out] if rig_out is not None else []), overwrite=overwrite)
     try:
-        sensor = get_preset(preset)
+        file_sensor = None
+        if rig_file is not None:
+            given = [f for f, v in (("--period-us", period_us), ("--ramp-fraction", ramp_fraction),
+                                    ("--t1-shape", t1_shape), ("--t2-shape", t2_shape),
+                                    ("--l-const", l_const)) if v is not None]
+            if panel != Rig.panel:
+                given.append("--panel")
+            if given:
+                fail(f"--rig {rig_file}: the rig file sets the rig; leave out "
+                     f"{', '.join(given)}")
+            from asynhdr.io.rigfile import read_rig
+
+            file_sensor = read_rig(rig_file).sensor
+        if file_sensor is not None and preset is not None and preset != file_sensor.name:
+            fail(f"--preset {preset}: the rig file {rig_file} is for the {file_sensor.name} "
+                 "sensor; leave out --preset (or use another rig file)")
+        sensor = file_sensor if file_sensor is not None else get_preset(
+            preset or _default(_simulate, "sensor"))
+        preset = sensor.name
         rig = _simulate_rig(preset, rig_file, period_us=period_us, ramp_fraction=ramp_fraction,
                             t1_shape=t1_shape, t2_shape=t2_shape, l_const=l_const,
                             panel=panel, pre_emphasis=pre_emphasis)
+        if rig_file is None and panel != Rig.panel and all(
+                v is None for v in (ramp_fraction, t1_shape, t2_shape, l_const)):
+            err_console.print(f"note: --panel {panel}: the paper's rig (L_const "
+                              f"{rig.l_const:g}, {rig.t1_shape} ramps), not the "
+                              f"{preset} preset's designed rig, which assumes ideal panels")
         seen = sensor.region_of_interest() if roi else sensor
         if hold:
-            if engine == "stepped":
+            if engine == "stepped" or (engine == "auto" and motion is not None):
                 fail("--hold needs the exact engine (a static scene); the stepped engine "
                      "fires its pixels chunk by chunk")
             seen = seen.with_(name=seen.name, arbiter="hold")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 from pathlib import Path
 from typing import Any
 
@@ -154,6 +155,8 @@ def info(
     from asynhdr.io import open_source
 
     err = Console(stderr=True)
+    if period_us is not None and not (math.isfinite(period_us) and period_us > 0):
+        fail(f"--period-us must be a positive number of µs, got {period_us}")
     if plot is not None:
         check_outputs([plot], overwrite=overwrite)
         try:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import math
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
@@ -94,6 +95,15 @@ def reconstruct(
         fail(f"--demosaic: expected one of {DEMOSAIC_CHOICES}, got {demosaic!r}")
     if method not in METHODS:
         fail(f"--method: unknown method {method!r}; choose from {list(METHODS)}")
+    from asynhdr.tonemap import TONEMAP_METHODS
+
+    if tonemap not in TONEMAP_METHODS:
+        fail(f"--tonemap: expected one of {list(TONEMAP_METHODS)}, got {tonemap!r}")
+    if period_us is not None and not (math.isfinite(period_us) and period_us > 0):
+        fail(f"--period-us must be a positive number of µs, got {period_us}")
+    if method == "ml" and "hdr" in fmts:
+        fail("--formats hdr: Radiance .hdr holds no NaN, and ml marks the pixels without "
+             "information NaN; use exr, tif or npy")
     if out.exists() and not out.is_dir():
         fail(f"{out}: exists and is not a folder; --out names the folder for the images")
     stem = f"{recording.stem}_{method}_"
@@ -158,7 +168,10 @@ def reconstruct(
         note = (" (cycle 0 is a warm-up cycle: the modulation starts with the recording, so "
                 "its pixels start from another state and its image differs; --skip-warmup "
                 "leaves it out)")
-    if colour:
+    if colour and mlo.active:
+        note += (f"; colour recording (CFA {plan.metadata['cfa']}): ml's images are the "
+                 "mosaic, one radiance per pixel, not demosaiced")
+    elif colour:
         note += (f"; colour recording (CFA {plan.metadata['cfa']}): demosaiced ({demosaic}) "
                  "to RGB")
     console.print(f"{written} image{'s' if written != 1 else ''} ({method}) from "
