@@ -370,6 +370,19 @@ def test_cli_calibrate_thresholds_then_reconstruct_with_calibration(tmp_path: Pa
                               "--method", "ml", "--formats", "exr"])
     assert res.exit_code == 0, res.output
     assert "no --calibration" in res.output and "mismatch 0.05" in res.output
+    # a calibration of another sensor, or for another method, is refused before any work
+    small = tmp_path / "small.h5"
+    res = runner.invoke(app, ["simulate", "flat:2000", "-o", str(small), "--width", "6",
+                              "--height", "4", "--preset", "imx636", "--n-cycles", "1"])
+    assert res.exit_code == 0, res.output
+    for args, word in ((["--method", "ml", "--calibration", str(cal)], "cal.npz: thresholds "
+                        "of a 12x8 sensor"),
+                       (["--method", "exp", "--calibration", str(cal)], "--calibration"),
+                       (["--method", "ml", "--cmap", str(cal)], "--cmap")):
+        out = tmp_path / "refused"
+        res = runner.invoke(app, ["reconstruct", str(small), "-o", str(out), *args])
+        assert res.exit_code == 2 and word in " ".join(res.output.split()), res.output
+        assert not out.exists()
 
 
 def test_design_prediction_counts_the_readout_queue() -> None:

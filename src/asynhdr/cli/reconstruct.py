@@ -116,7 +116,17 @@ def reconstruct(
                             "cmap": str(cmap) if cmap else None, "radiometric": m.radiometric}
     from asynhdr.cli.ml_support import MlOutputs
 
+    if calibration is not None and method != "ml":
+        fail(f"--calibration: per-pixel thresholds are for --method ml, not {method} (the "
+             "paper's weightings take a c-map: --cmap)")
+    if cmap is not None and method == "ml":
+        fail("--cmap: ml takes per-pixel thresholds from --calibration, not a c-map")
     mlo = MlOutputs.open(rig, calibration, method=method, formats=fmts, fail=fail)
+    if mlo.thresholds is not None and src.width is not None and \
+            mlo.thresholds[0].shape != (src.height, src.width):
+        hc, wc = mlo.thresholds[0].shape
+        fail(f"{calibration}: thresholds of a {wc}x{hc} sensor; {recording} is "
+             f"{src.width}x{src.height}")
     if rig is not None:
         meta["rig"] = str(rig)
     opts = mlo.options
