@@ -176,3 +176,21 @@ def test_a_file_and_its_recording_give_the_same_cycles(tmp_path: Path) -> None:
     a, b = find_cycles(rec), find_cycles(open_source(path))
     np.testing.assert_array_equal(a.start_us, b.start_us)
     assert (a.period_us, a.confidence, a.warmup) == (b.period_us, b.confidence, b.warmup)
+
+
+def test_a_single_ramp_starts_at_the_trigger_that_opens_it() -> None:
+    from asynhdr.scene import flat_field
+
+    rec = simulate(flat_field(width=12, height=8, radiance=100.0), sensor="ideal", n_cycles=1,
+                   rng=0)
+    first_edge = int(rec.triggers["t"][rec.triggers["rising"]][0])
+    assert first_edge < int(rec.events["t"].min())  # the sensor needs time to fire
+    win = windows_for(rec, single=True)
+    assert int(win.start_us[0]) == first_edge
+    for method in ("invert", "ttfe"):
+        img = reconstruct(rec, method=method, windows=win)[0]
+        assert abs(float(np.median(img)) / 100.0 - 1.0) < 0.01, method
+    # without triggers, the first event opens it
+    bare = Recording(rec.events, rec.width, rec.height, triggers=empty_triggers(),
+                     metadata=rec.metadata)
+    assert int(windows_for(bare, single=True).start_us[0]) == int(rec.events["t"].min())

@@ -564,8 +564,9 @@ def windows_for(
 ) -> CycleWindows:
     """Integration windows of a recording.
 
-    With ``single`` the whole recording is one cycle starting at its first event (a
-    single ramp, as in temporal-mapping captures). Otherwise the cycles of
+    With ``single`` the whole recording is one cycle (a single ramp, as in
+    temporal-mapping captures) starting at the last rising trigger edge at or before its
+    first event, else at its first event. Otherwise the cycles of
     :func:`asynhdr.segment.find_cycles` (or ``cycles``), each integrated over
     ``window_us``: by default the rig's ramp (simulated recordings, or ``rig``: a rig
     file's, whose period also guides the cycle search) or the period, at most the
@@ -579,6 +580,10 @@ def windows_for(
         if sc.events == 0:
             raise ValueError(f"{src.name}: no events: nothing to reconstruct")
         t0 = int(sc.min_t_us)  # type: ignore[arg-type]
+        tr = sc.triggers
+        opening = tr["t"][tr["rising"] & (tr["t"] <= t0)] if tr.size else tr["t"][:0]
+        if opening.size:  # the ramp's own start, as the rig signalled it
+            t0 = int(opening[-1])
         span = float(int(sc.max_t_us) - t0 + 1)  # type: ignore[arg-type]
         return CycleWindows(np.array([t0]), float(window_us or span))
     cyc = cycles if cycles is not None else find_cycles(src, period_us=period_us)

@@ -54,7 +54,9 @@ def reconstruct(
     period_us: float | None = typer.Option(None, help="Modulation period in µs, when known "
                                            "(needed with fewer than two trigger edges)."),
     single: bool = typer.Option(False, "--single", help="Treat the whole recording as one "
-                                "cycle (a single ramp, e.g. a temporal-mapping capture)."),
+                                "cycle (a single ramp, e.g. a temporal-mapping capture), "
+                                "from the rising trigger edge that opens it, else from its "
+                                "first event."),
     skip_warmup: bool = typer.Option(False, "--skip-warmup", help="Leave out a warm-up "
                                      "cycle (the first, when the modulation starts with the "
                                      "recording)."),
