@@ -32,8 +32,7 @@ import numpy as np
 
 from asynhdr.events import Recording
 from asynhdr.reconstruct import CycleWindows, reconstruct_cycles
-from asynhdr.sensor.params import get_preset
-from asynhdr.simulate import HeldReadout, finish_recording, simulate_cycles
+from asynhdr.simulate import finish_recording, holds_pixels, simulate_cycles
 
 __all__ = ["map_ordered", "reconstruct_distributed", "scheduler_client",
            "simulate_distributed"]
@@ -89,13 +88,7 @@ def simulate_distributed(client: Any, scene: Any, *, n_parts: int | None = None,
     radiance = getattr(scene, "radiance", scene)
     h, w = np.asarray(radiance).shape[-2:]
     parts = n_parts or _n_workers(client)
-    sensor = kwargs.get("sensor", "v2e")
-    sensor = get_preset(sensor) if isinstance(sensor, str) else sensor
-    moving = kwargs.get("frame_times_us") is not None or getattr(scene, "times_us", None) \
-        is not None
-    engine = kwargs.get("engine", "auto")
-    engine = ("stepped" if moving else "exact") if engine == "auto" else engine
-    if parts > 1 and HeldReadout.applies(sensor, engine):
+    if parts > 1 and holds_pixels(scene, **kwargs):
         logger.info("the readout holds its pixels, which couples them all: one worker "
                     "simulates the whole sensor")
         parts = 1

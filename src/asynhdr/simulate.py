@@ -51,13 +51,14 @@ from asynhdr.sensor.photoreceptor import (
 )
 from asynhdr.sensor.pixel import CycleFiring, PixelState, cycle_pieces, fire_cycle, gather_sorted
 
-__all__ = ["ENGINES", "CycleEvents", "draw_thresholds", "finish_recording", "simulate",
-           "simulate_cycles"]
+__all__ = ["DEFAULT_SENSOR", "ENGINES", "CycleEvents", "draw_thresholds", "finish_recording",
+           "holds_pixels", "simulate", "simulate_cycles"]
 
 logger = logging.getLogger(__name__)
 
 
 ENGINES = ("exact", "stepped")
+DEFAULT_SENSOR = "v2e"  # the preset simulate uses when none is named
 
 Progress = Callable[[str, int, int], None]
 """``progress(stage, done, total)``, the project's progress protocol
@@ -356,7 +357,7 @@ def simulate(
     scene: _HasRadiance | np.ndarray,
     *,
     rig: Rig | None = None,
-    sensor: SensorParams | str = "v2e",
+    sensor: SensorParams | str = DEFAULT_SENSOR,
     n_cycles: int = 1,
     rng: np.random.Generator | int | None = 0,
     t0_us: int = 0,
@@ -606,11 +607,28 @@ class HeldReadout:
 _IDLE_SLICES = 8  # empty slices before a held cycle tries a window of independent pixels
 
 
+def _engine_for(engine: str, *, moving: bool) -> str:
+    """The engine ``"auto"`` means: stepped for a moving scene, else exact."""
+    if engine != "auto":
+        return engine
+    return "stepped" if moving else "exact"
+
+
+def holds_pixels(scene: Any, *, sensor: SensorParams | str = DEFAULT_SENSOR,
+                 engine: str = "auto", frame_times_us: Any = None, **_: Any) -> bool:
+    """Whether :func:`simulate` with these arguments holds a pixel whose event waits for
+    the readout (:class:`HeldReadout`), which couples every pixel: such a sensor cannot
+    be split into pixel ranges."""
+    sp = get_preset(sensor) if isinstance(sensor, str) else sensor
+    moving = frame_times_us is not None or getattr(scene, "times_us", None) is not None
+    return HeldReadout.applies(sp, _engine_for(engine, moving=moving))
+
+
 def simulate_cycles(
     scene: _HasRadiance | np.ndarray,
     *,
     rig: Rig | None = None,
-    sensor: SensorParams | str = "v2e",
+    sensor: SensorParams | str = DEFAULT_SENSOR,
     n_cycles: int = 1,
     rng: np.random.Generator | int | None = 0,
     t0_us: int = 0,
@@ -642,8 +660,7 @@ def simulate_cycles(
         raise ValueError(f"t0_us must be a whole number of µs, got {t0_us}")
     if frame_times_us is None and getattr(scene, "times_us", None) is not None:
         frame_times_us = scene.times_us  # type: ignore[union-attr]
-    if engine == "auto":
-        engine = "stepped" if frame_times_us is not None else "exact"
+    engine = _engine_for(engine, moving=frame_times_us is not None)
     if engine not in ENGINES:
         raise ValueError(f"unknown engine {engine!r}; expected 'auto' or one of {ENGINES}")
     dead_us = sensor.refractory_us + sensor.latency_us
