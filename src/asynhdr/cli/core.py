@@ -110,6 +110,12 @@ def check_outputs(paths: list[Path], *, overwrite: bool) -> None:
 TIME_UNIT_HELP = "Text/HDF5 time unit: us, ms, s (text: also auto)."
 
 
+def check_period(period_us: float | None) -> None:
+    """``--period-us``, when given, is a positive number of µs (else the error)."""
+    if period_us is not None and not (math.isfinite(period_us) and period_us > 0):
+        fail(f"--period-us must be a positive number of µs, got {period_us}")
+
+
 def _parse_formats(formats: str) -> list[str]:
     out = [f.strip().lower().lstrip(".") for f in formats.split(",") if f.strip()]
     bad = [f for f in out if f not in IMAGE_FORMATS]

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 from pathlib import Path
 from typing import Any
 
@@ -16,7 +15,7 @@ from rich.table import Table
 
 from asynhdr._atomic import atomic_path
 from asynhdr.cli._app import app
-from asynhdr.cli.core import TIME_UNIT_HELP, as_flags, check_outputs, fail
+from asynhdr.cli.core import TIME_UNIT_HELP, as_flags, check_outputs, check_period, fail
 from asynhdr.segment import Cycles, NoCyclesError, find_cycles
 from asynhdr.source import Scan
 
@@ -155,8 +154,7 @@ def info(
     from asynhdr.io import open_source
 
     err = Console(stderr=True)
-    if period_us is not None and not (math.isfinite(period_us) and period_us > 0):
-        fail(f"--period-us must be a positive number of µs, got {period_us}")
+    check_period(period_us)
     if plot is not None:
         check_outputs([plot], overwrite=overwrite)
         try:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import math
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
@@ -17,6 +16,7 @@ from asynhdr.cli.core import (
     TIME_UNIT_HELP,
     _parse_formats,
     check_outputs,
+    check_period,
     console,
     fail,
     progress_bar,
@@ -101,8 +101,7 @@ def reconstruct(
 
     if tonemap not in TONEMAP_METHODS:
         fail(f"--tonemap: expected one of {list(TONEMAP_METHODS)}, got {tonemap!r}")
-    if period_us is not None and not (math.isfinite(period_us) and period_us > 0):
-        fail(f"--period-us must be a positive number of µs, got {period_us}")
+    check_period(period_us)
     if method == "ml" and "hdr" in fmts:
         fail("--formats hdr: Radiance .hdr holds no NaN, and ml marks the pixels without "
              "information NaN; use exr, tif or npy")
