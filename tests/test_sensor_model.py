@@ -10,7 +10,7 @@ from scipy import stats
 
 from asynhdr.events import EVENT_DTYPE
 from asynhdr.rig import Rig
-from asynhdr.sensor.noise import apply_arbiter, poisson_times
+from asynhdr.sensor.noise import apply_arbiter, by_pixel_then_time, poisson_times
 from asynhdr.sensor.params import PRESETS, SensorParams
 from asynhdr.simulate import simulate
 
@@ -58,6 +58,16 @@ def test_background_rate_and_exponential_inter_arrivals() -> None:
     assert res.pvalue > 1e-3
     # and a wrong rate is rejected by the same test
     assert stats.kstest(gaps, "expon", args=(0, 0.8e6 / rate_hz)).pvalue < 1e-3
+
+
+@pytest.mark.parametrize(("n", "n_pixels"), [(0, 4), (1, 1), (3_000, 7), (20_000, 50_000)])
+def test_arrivals_are_grouped_by_pixel_then_time_as_a_sort_would(n: int,
+                                                                  n_pixels: int) -> None:
+    rng = np.random.default_rng(n)
+    pix = rng.integers(0, n_pixels, n)
+    t = np.round(rng.random(n) * 50.0, 1)  # whole tenths: equal times in one pixel occur
+    order = by_pixel_then_time(pix, t, n_pixels)
+    assert np.array_equal(order, np.lexsort((t, pix)))  # stable: ties keep their order
 
 
 def test_leak_events_through_the_simulator_match_their_rate() -> None:

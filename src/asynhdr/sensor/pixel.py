@@ -480,8 +480,8 @@ def _fire(pix, act, order, s, idx, rows, ia, ib, wa, wb, log_domain, mode, d1, d
             xb = wb[i]
             con = c_on[p]
             coff = c_off[p]
-            e_on = math.exp(con)
-            e_off = math.exp(-coff)
+            e_on = 1.0 if log_domain else math.exp(con)
+            e_off = 1.0 if log_domain else math.exp(-coff)
             runs, nr = _runs_of(i, mode, xa, xb, d1, d2, pieces, run_key, run_off, run_tab,
                                 local)
             g0 = run_off[run_key[i]] if mode == 1 else 0
@@ -767,6 +767,10 @@ class CycleFiring:
             self.index = (np.zeros(2, dtype=np.int64), np.zeros((1, 2)),
                           np.zeros((1, 2), dtype=np.int32))
         self.order = _block_order(n, _BLOCK)
+        # the order pixels are fired in: those reading one pair of rows one after another,
+        # so the pair's rows and ladder stay in the core's cache (the events are the same
+        # in any order)
+        self.all_pixels = self._by_pair(np.arange(n, dtype=np.int64))
         self.idx = (np.searchsorted(s, np.arange(math.ceil(float(s[-1])) + 1,
                                                  dtype=np.float64), side="right")
                     - 1).astype(np.int64)
@@ -775,6 +779,12 @@ class CycleFiring:
         self.nbins = int(nbins)
         self._held_buffers: tuple[np.ndarray, ...] | None = None
         self._sliced = False  # a slice was fired: the state's slice fields are in use
+
+    def _by_pair(self, act: np.ndarray) -> np.ndarray:
+        """The listed pixels ``act`` grouped by the pair of rows they read (stable)."""
+        if self.mode == 0 or act.size < 2:
+            return act.astype(np.int64)
+        return act[np.argsort(self.run_key[act], kind="stable")].astype(np.int64)
 
     def fire(self, *, c_on: np.ndarray, c_off: np.ndarray, state: PixelState,
              alive: np.ndarray, noise_off: np.ndarray, noise_q: np.ndarray,
@@ -810,8 +820,8 @@ class CycleFiring:
             offsets, slot_t, slot_p, counts, overflow, lost = self._held_buffers
             counts[:] = 0
             lost[:] = 0
-            act = (np.arange(n, dtype=np.int64) if final else
-                   np.flatnonzero(state.next_fire[self.pix] < stop).astype(np.int64))
+            act = (self.all_pixels if final else
+                   self._by_pair(np.flatnonzero(state.next_fire[self.pix] < stop)))
             self._kernel(act, _block_order(act.size, _BLOCK), stop, final, True, True,
                          self._held_buffers, inputs)
             if overflow.any():
@@ -821,7 +831,7 @@ class CycleFiring:
         c_scale = 1.0
         saved = state.copy(slices=sliced)
         saved_q = noise_q.copy()
-        act = np.arange(n, dtype=np.int64)
+        act = self.all_pixels
         for _attempt in range(8):
             _bounds(self.pix, self.order, self.s, self.rows, self.ia, self.ib, self.wa, self.wb,
                     self.log_domain, self.mode, self.d1, self.d2, self.pieces, self.run_key,
