@@ -3,6 +3,7 @@ the calibration file, panel sweeps, the response), and the design's prediction."
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -406,3 +407,37 @@ def test_design_prediction_counts_the_readout_queue() -> None:
     assert even.run(20.0)[0] >= lumped.run(20.0)[0] + 30.0
     with pytest.raises(ValueError, match="uniform_share"):
         predict(rig, imx, levels=levels, uniform_share=1.0)
+
+
+def test_a_rig_of_another_period_is_refused(tmp_path: Path) -> None:
+    # a recording made at 20 cycles/s (its trigger edges 50 ms apart) and a rig file of a
+    # 40 ms rig: every radiometric method would read the events through the wrong
+    # waveforms, so the reconstruction refuses it and writes nothing; the right rig works
+    from typer.testing import CliRunner
+
+    from asynhdr.cli import _register, app
+    from asynhdr.io import open_source, write_recording
+    from asynhdr.reconstruct import windows_for
+
+    made = Rig(period_us=50_000)
+    rec = simulate(np.full((6, 8), 100.0), rig=made, sensor="ideal", n_cycles=3, rng=0)
+    raw = tmp_path / "rec.raw"
+    write_recording(raw, rec)
+    other = Rig(period_us=40_000)
+    with pytest.raises(ValueError, match=r"50000 µs long \(from the rig it was made with\), "
+                                         r"but the rig's period is 40000 µs"):
+        windows_for(open_source(raw), rig=other)
+    # without the recording's own rig, its trigger edges say the same
+    bare = dataclasses.replace(rec, metadata={})
+    with pytest.raises(ValueError, match="from its trigger edges"):
+        windows_for(bare, rig=other)
+    assert windows_for(open_source(raw), rig=made).n_cycles == 3
+    rig_p = tmp_path / "other.toml"
+    write_rig(rig_p, other, sensor=get_preset("ideal"))
+    _register()
+    out = tmp_path / "img"
+    res = CliRunner().invoke(app, ["reconstruct", str(raw), "--rig", str(rig_p), "--method",
+                                   "ttfe", "--out", str(out)])
+    assert res.exit_code == 2 and "the rig does not describe this recording" in " ".join(
+        res.output.split())
+    assert not out.exists()

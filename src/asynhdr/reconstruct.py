@@ -79,7 +79,7 @@ import numpy as np
 
 from asynhdr.events import Recording, sort_events
 from asynhdr.rig import Rig
-from asynhdr.segment import Cycles, find_cycles
+from asynhdr.segment import Cycles, cycles_from_triggers, find_cycles
 from asynhdr.sensor.params import PRESETS, SensorParams
 from asynhdr.source import Progress, Source, as_source
 
@@ -88,6 +88,7 @@ __all__ = [
     "DEFAULT_METHOD",
     "METHODS",
     "RELATIVE_L_CONST",
+    "RIG_PERIOD_TOLERANCE",
     "WEIGHTINGS",
     "CycleImages",
     "CycleWindows",
@@ -553,6 +554,32 @@ def thresholds_of(source: Source | Recording) -> tuple[float, float, str]:
     return SensorParams.threshold_on, SensorParams.threshold_off, "the default"
 
 
+RIG_PERIOD_TOLERANCE = 0.01
+"""How far (a fraction) a recording's cycle length may be from its rig's period: clocks of a
+signal generator and a camera agree far better; a rig file of another rig does not."""
+
+
+def _check_rig_period(src: Source, cyc: Cycles, rig: Rig) -> None:
+    """Refuse a rig whose period the recording's cycles contradict: their own length, or
+    the trigger edges' spacing where the edges did not fit the rig's period and the cycles
+    came from the event rate at that period instead."""
+    length, how = float(cyc.period_us), {
+        "triggers": "from its trigger edges", "rig": "from the rig it was made with",
+        "event_rate": "from its event rate"}.get(cyc.source, cyc.source)
+    tr = src.triggers
+    if cyc.source == "event_rate" and tr.size and np.count_nonzero(tr["rising"]) > 1:
+        ids, counts = np.unique(tr["id"][tr["rising"]], return_counts=True)
+        try:
+            edges = cycles_from_triggers(tr, channel=int(ids[int(np.argmax(counts))]))
+            length, how = float(edges.period_us), "from its trigger edges"
+        except ValueError:
+            pass  # edges of no period: the event rate's cycles stand
+    if abs(length / rig.period_us - 1.0) > RIG_PERIOD_TOLERANCE:
+        raise ValueError(
+            f"{src.name}: its cycles are {length:.7g} µs long ({how}), but the rig's period "
+            f"is {rig.period_us:.7g} µs: the rig does not describe this recording")
+
+
 def windows_for(
     source: Source | Recording,
     *,
@@ -570,7 +597,8 @@ def windows_for(
     :func:`asynhdr.segment.find_cycles` (or ``cycles``), each integrated over
     ``window_us``: by default the rig's ramp (simulated recordings, or ``rig``: a rig
     file's, whose period also guides the cycle search) or the period, at most the
-    shortest cycle.
+    shortest cycle. A rig whose period differs from the cycles' by more than
+    :data:`RIG_PERIOD_TOLERANCE` is refused (``ValueError``).
     """
     src = as_source(source)
     if rig is not None and period_us is None and not single:
@@ -590,6 +618,8 @@ def windows_for(
     starts = np.asarray(cyc.start_us, dtype=np.int64)
     if starts.size == 0:
         raise ValueError(f"{src.name}: no cycles to reconstruct")
+    if rig is not None:
+        _check_rig_period(src, cyc, rig)
     if window_us is None:
         rig = rig if rig is not None else rig_of(src)
         window_us = rig.ramp_us if rig is not None else float(cyc.period_us)
