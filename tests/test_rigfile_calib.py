@@ -432,6 +432,9 @@ def test_a_rig_of_another_period_is_refused(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="from its trigger edges"):
         windows_for(bare, rig=other)
     assert windows_for(open_source(raw), rig=made).n_cycles == 3
+    # a period given beside the right rig: the cycles it makes are refused
+    with pytest.raises(ValueError, match="40000 µs long"):
+        windows_for(bare, rig=made, period_us=40_000)
     rig_p = tmp_path / "other.toml"
     write_rig(rig_p, other, sensor=get_preset("ideal"))
     _register()

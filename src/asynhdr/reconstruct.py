@@ -563,21 +563,22 @@ def _check_rig_period(src: Source, cyc: Cycles, rig: Rig) -> None:
     """Refuse a rig whose period the recording's cycles contradict: their own length, or
     the trigger edges' spacing where the edges did not fit the rig's period and the cycles
     came from the event rate at that period instead."""
-    length, how = float(cyc.period_us), {
+    lengths = [(float(cyc.period_us), {
         "triggers": "from its trigger edges", "rig": "from the rig it was made with",
-        "event_rate": "from its event rate"}.get(cyc.source, cyc.source)
+        "event_rate": "from its event rate"}.get(cyc.source, cyc.source))]
     tr = src.triggers
     if cyc.source == "event_rate" and tr.size and np.count_nonzero(tr["rising"]) > 1:
         ids, counts = np.unique(tr["id"][tr["rising"]], return_counts=True)
         try:
             edges = cycles_from_triggers(tr, channel=int(ids[int(np.argmax(counts))]))
-            length, how = float(edges.period_us), "from its trigger edges"
+            lengths.insert(0, (float(edges.period_us), "from its trigger edges"))
         except ValueError:
-            pass  # edges of no period: the event rate's cycles stand
-    if abs(length / rig.period_us - 1.0) > RIG_PERIOD_TOLERANCE:
-        raise ValueError(
-            f"{src.name}: its cycles are {length:.7g} µs long ({how}), but the rig's period "
-            f"is {rig.period_us:.7g} µs: the rig does not describe this recording")
+            pass  # edges of no period: the event rate's cycles stand alone
+    for length, how in lengths:
+        if abs(length / rig.period_us - 1.0) > RIG_PERIOD_TOLERANCE:
+            raise ValueError(
+                f"{src.name}: its cycles are {length:.7g} µs long ({how}), but the rig's "
+                f"period is {rig.period_us:.7g} µs: the rig does not describe this recording")
 
 
 def windows_for(
