@@ -93,6 +93,10 @@ def test_thresholds_from_flats_recover_simulated_thresholds(caplog) -> None:
         assert float(np.sqrt(np.mean(e ** 2))) < 0.005
         assert float(np.mean(np.abs(e) < 3 * err + 1e-3)) >= 0.9
         assert float(np.std(true)) > 0.03  # the mismatch it removes
+        # the stated errors are the errors: hardly a pixel beyond three of them, none
+        # beyond five (each pixel's scatter of six cycles alone put one at 5.6)
+        z = e / err
+        assert float(np.mean(np.abs(z) > 3)) < 0.01 and float(np.abs(z).max()) < 5.0
     assert cal.how["cycles"] == 12  # the first cycle of each capture is left out
     # the same flat field on the whole array (these pixels' share of its readout): every
     # pixel fires at once, the queue delays the events, and the calibration says so
@@ -102,6 +106,27 @@ def test_thresholds_from_flats_recover_simulated_thresholds(caplog) -> None:
     with caplog.at_level("WARNING", logger="asynhdr.calib"):
         thresholds_from_flats([whole], radiance=rads[0], rig=rig, sensor=sensor)
     assert "readout delayed" in caplog.text
+
+
+def test_moderated_variances_are_not_small_by_chance() -> None:
+    # 4,000 pixels of one true variance, each estimated from 3 samples (2 degrees of
+    # freedom): alone, about 1 % of the estimates are below a tenth of the truth (chi-square
+    # with 2 degrees: P(s2 < 0.1) = 1 - exp(-0.1) = 9.5 %, below 0.01: 1 %); moderated by the
+    # others they all lie near it. Pixels of two true variances (1 and 9) keep them apart.
+    from asynhdr.calib import moderated_variance
+
+    rng = np.random.default_rng(3)
+    dof = np.full(4000, 2.0)
+    s2 = rng.chisquare(2, 4000) / 2.0
+    assert 0.005 < float(np.mean(s2 < 0.01)) < 0.02
+    m = moderated_variance(s2, dof, np.ones(4000, bool))
+    assert float(m.min()) > 0.7 and float(m.max()) < 1.4
+    assert float(np.mean(m)) == pytest.approx(1.0, abs=0.1)
+    true = np.where(np.arange(4000) < 2000, 1.0, 9.0)
+    s2 = true * rng.chisquare(20, 4000) / 20.0
+    m = moderated_variance(s2, np.full(4000, 20.0), np.ones(4000, bool))
+    assert float(np.median(m[:2000])) == pytest.approx(1.0, rel=0.2)
+    assert float(np.median(m[2000:])) == pytest.approx(9.0, rel=0.2)
 
 
 def test_flat_fields_find_the_dead_pixels_and_ml_fills_them() -> None:

@@ -67,6 +67,7 @@ __all__ = [
     "fit_panel_curves",
     "fit_response",
     "flat_capture_sensor",
+    "moderated_variance",
     "read_sweep_csv",
     "simulate_sweep",
     "thresholds_from_flats",
@@ -188,7 +189,8 @@ def thresholds_from_flats(
     ``radiance``: the flat field's radiance in the rig's unit, one for all captures or one
     per capture. ``skip_first_cycle``: leave out each capture's first cycle (the pixel's
     reference before it is not the cycle's). Returns a :class:`Calibration` whose errors
-    are the spread of the per-cycle estimates over the root of their number (per pixel;
+    are the standard errors of the per-cycle estimates' weighted mean (per pixel; the
+    scatter of a pixel's few cycles moderated by the other pixels', :func:`moderated_variance`;
     pixels with fewer than two usable cycles get the prior's spread).
     """
     from asynhdr.ml import cached_model, estimate, thresholds_prior
@@ -255,9 +257,12 @@ def thresholds_from_flats(
         with np.errstate(invalid="ignore", divide="ignore"):
             mean = np.where(sw > 0, s1 / sw, nom)
             # cycle i's estimate has variance sigma1^2 / w_i: the weighted mean's variance
-            # is sigma1^2 / sum(w), sigma1^2 from the weighted scatter over (N - 1)
+            # is sigma1^2 / sum(w)
             scatter = np.maximum(s2 - 2 * mean * s1 + mean ** 2 * sw, 0.0)
-            err = np.sqrt(scatter / np.maximum(nc - 1, 1.0) / np.maximum(sw, 1.0))
+            # sigma1^2 from the weighted scatter over (N - 1), moderated by the other pixels'
+            dof = np.maximum(nc - 1, 1.0)
+            sig1 = moderated_variance(scatter / dof, dof, nc > 1)
+            err = np.sqrt(sig1 / np.maximum(sw, 1.0))
         err = np.where(nc > 1, np.maximum(err, 1e-4), prior_sigma)
         out.append((mean.astype(np.float32), err.astype(np.float32)))
         counts.append(sw)
@@ -275,6 +280,45 @@ def thresholds_from_flats(
                 len(caps), n_cycles, how["median_error_on"], how["median_error_off"])
     return Calibration(c_on=out[0][0], c_off=out[1][0], sigma_on=out[0][1],
                        sigma_off=out[1][1], defects=dead, sensor=sensor, how=how)
+
+
+def _trigamma_inverse(x: float) -> float:
+    """``y`` with ``trigamma(y) = x`` (Newton's method from ``0.5 + 1 / x``; x > 0)."""
+    from scipy.special import polygamma
+
+    y = 0.5 + 1.0 / x
+    for _ in range(50):
+        tri = float(polygamma(1, y))
+        step = tri * (1.0 - tri / x) / float(polygamma(2, y))
+        y += step
+        if -step / y < 1e-8:
+            break
+    return y
+
+
+def moderated_variance(s2: np.ndarray, dof: np.ndarray, use: np.ndarray) -> np.ndarray:
+    """Each pixel's variance estimate ``s2`` (``dof`` degrees of freedom) moderated by
+    the others' (Smyth 2004, empirical Bayes): the pixels' true variances are taken as
+    scaled inverse chi-square with ``d0`` degrees of freedom about ``s0^2``, both fitted to
+    the spread of ``log s2`` over the pixels in ``use``; the result is the posterior
+    ``(d0 s0^2 + dof s2) / (d0 + dof)``. With a few cycles per pixel a sample variance
+    alone is now and then ten times too small by chance; pooled alone it misstates the
+    pixels whose noise really differs."""
+    from scipy.special import digamma, polygamma
+
+    ok = use & (s2 > 0) & np.isfinite(s2)
+    if np.count_nonzero(ok) < 3:
+        return s2
+    nu = dof[ok]
+    e = np.log(s2[ok]) - digamma(nu / 2.0) + np.log(nu / 2.0)
+    n = e.size
+    emean = float(e.mean())
+    evar = float(np.sum((e - emean) ** 2) / (n - 1) - np.mean(polygamma(1, nu / 2.0)))
+    if evar > 0:
+        d0 = 2.0 * _trigamma_inverse(evar)
+        s0 = math.exp(emean + float(digamma(d0 / 2.0)) - math.log(d0 / 2.0))
+        return (d0 * s0 + dof * s2) / (d0 + dof)
+    return np.full_like(s2, math.exp(emean))  # no spread beyond chance: one variance
 
 
 def _starts(rec: Recording, rig: Rig) -> np.ndarray:
