@@ -140,11 +140,11 @@ def test_colour_scene_through_the_rig():
 def test_cli_colour_simulate_and_reconstruct(tmp_path):
     from typer.testing import CliRunner
 
-    import asynhdr.cli.core  # noqa: F401  (registers the commands)
-    from asynhdr.cli import app
+    from asynhdr.cli import _register, app
     from asynhdr.io import open_recording
     from asynhdr.io.images import read_image, read_metadata
 
+    _register()
     rgb = np.ones((24, 24, 3), dtype=np.float32)
     rgb[:, :12] = [400.0, 100.0, 25.0]
     rgb[:, 12:] = [20.0, 60.0, 300.0]

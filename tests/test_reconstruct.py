@@ -106,6 +106,42 @@ def test_invert_is_linear_in_radiance_on_the_ideal_pixel() -> None:
     np.testing.assert_allclose(img[1, 0], radiance[0], rtol=5e-3)
 
 
+@pytest.mark.parametrize("offset", [-0.15, 0.0, 0.1])
+def test_invert_needs_no_reference_at_the_start_level(offset: float) -> None:
+    """By hand: a pixel of rho = 10 on the paper's rig whose reference stands ``offset``
+    above the signal's start level fires ON at ``ref + k c``; each crossing time is
+    ``V^-1`` of its level. ``invert`` fits one unknown start level for the cycle, so it
+    returns 100 (L_const = 10) whatever the offset; taking the reference at the start
+    level would read ``e^offset`` wrong."""
+    rig = Rig(period_us=100_000, l_const=10.0)
+    w1, w2 = rig.waveforms()
+    rho, c = 10.0, 0.2
+    u = np.linspace(0.0, rig.ramp_fraction, 200_001)
+    v = np.log(rho * w1(u) + w2(u))  # rising on the ramp
+    levels = v[0] + offset + c * np.arange(1, 60)
+    levels = levels[levels < v[-1]]
+    t = np.floor(np.interp(levels, v, u) * rig.period_us).astype(np.int64)
+    ev = make_events(x=[0] * t.size, y=[0] * t.size, p=[1] * t.size, t=t)
+    rec = Recording(events=ev, width=1, height=1, triggers=make_triggers([0]),
+                    metadata={"rig": rig.to_metadata(), "n_cycles": 1,
+                              "sensor": {"threshold_on": c, "threshold_off": c}})
+    img = reconstruct(rec, method="invert", windows=CycleWindows(np.array([0]),
+                                                                 rig.ramp_us))
+    assert t.size >= 10
+    assert img[0, 0, 0] == pytest.approx(100.0, rel=2e-3)
+
+
+def test_invert_holds_on_panels_that_lag_their_drive() -> None:
+    """The ideal pixel behind TN panels driven without pre-emphasis: the signal first
+    dips (the panel still closing) and comes back to its start level exactly at the
+    cycle's end, where the pixel's last crossing falls into the next cycle. Every cycle
+    still inverts to the flat's 100 (the start level taken as the reference read 40)."""
+    rig = Rig(panel="tn", pre_emphasis=False)
+    rec = simulate(np.full((4, 6), 100.0), rig=rig, sensor="ideal", n_cycles=3, rng=0)
+    img = reconstruct(rec, method="invert")
+    np.testing.assert_allclose(np.median(img.reshape(3, -1), axis=1), 100.0, rtol=1e-3)
+
+
 def test_every_method_runs_and_is_monotone_on_a_ramp_of_radiances() -> None:
     radiance = np.geomspace(15.0, 5000.0, 12).reshape(1, 12)
     rec = simulate(radiance, sensor="ideal", n_cycles=2)

@@ -41,14 +41,20 @@ Baselines:
 - ``count``: ``L_const * exp(c_on * n_on)`` from the number of ON events alone.
 
 Radiometric inversion (``invert``): every event is an equation for ``L``. After
-``n_on`` ON and ``n_off`` OFF events since the cycle start, the pixel's irradiance has
-moved by ``c_on n_on - c_off n_off`` in log, so with the rig's known waveforms::
+``n_on`` ON and ``n_off`` OFF events in the cycle, the pixel's irradiance has moved by
+``l = c_on n_on - c_off n_off`` in log from its reference at the cycle's start, so with
+the rig's known waveforms and ``rho = L / L_const``::
 
-    L = L_const * (e^level T2(0) - T2(u)) / (T1(u) - e^level T1(0))
+    rho T1(u) + T2(u) = K e^l
 
-per event; the image is the geometric mean of these estimates over the cycle's
-events. It is linear in radiance (up to noise) and uses the c-map's per-pixel
-thresholds when given. Pixels with no usable event are 0.
+with one unknown ``K`` for the cycle: where the reference stood when it began (not the
+start level in general: the last cycle left it anywhere within a threshold of it). So
+the points ``(T1(u) e^-l, T2(u) e^-l)`` of a pixel's events lie on the line
+``y = K - rho x``, fitted in least squares; exact for the ideal pixel on any waveforms.
+A pixel whose events draw no line (one event) takes the reference at the start level,
+``L = L_const (e^l T2(0) - T2(u)) / (T1(u) - e^l T1(0))``. It is linear in radiance (up
+to noise) and uses the c-map's per-pixel thresholds when given. Pixels with no usable
+event are 0.
 
 Maximum likelihood (``ml``, :mod:`asynhdr.ml`): each pixel's events inverted together
 through the simulator's own pixel model (thresholds, dead time, reset noise, jitter,
@@ -327,10 +333,15 @@ def _interp(knots, values, x):
 
 @nb.njit(cache=True)
 def _invert_kernel(x, y, p, t, starts, window_us, period_us, width, c_on, c_off, knots,
-                   t1, t2, n_on, n_off, last_cycle, acc, cnt):
-    """Per event: the level reached since the cycle start is ``c_on n_on - c_off n_off``;
-    ``rho T1(u) + T2(u) = e^level (rho T1(0) + T2(0))`` gives one estimate of ``rho``.
-    Accumulates ``log rho`` per cycle and pixel."""
+                   t1, t2, level, sums, out):
+    """Per pixel and cycle, ``rho`` from every event at once. After event ``i`` the pixel's
+    level has moved ``l_i = c_on n_on - c_off n_off`` from its reference at the cycle's
+    start, wherever that stood: ``rho T1(u_i) + T2(u_i) = K e^(l_i)`` with one unknown
+    ``K`` for the cycle. So ``x_i = T1 e^-l_i`` and ``y_i = T2 e^-l_i`` lie on the line
+    ``y = K - rho x``, fitted in least squares. Where the events draw no line (one event,
+    or one ``x``), the reference is taken at the cycle's start level:
+    ``rho = (e^l T2(0) - T2(u)) / (T1(u) - e^l T1(0))``, the geometric mean over the
+    events."""
     ncyc = starts.shape[0]
     c = 0
     t10 = t1[0]
@@ -338,29 +349,59 @@ def _invert_kernel(x, y, p, t, starts, window_us, period_us, width, c_on, c_off,
     for i in range(t.shape[0]):
         ti = t[i]
         while c + 1 < ncyc and ti >= starts[c + 1]:
+            _invert_finish(c, sums, level, out)
             c += 1
         dt = ti - starts[c]
         if dt < 0 or dt >= window_us:
             continue
         j = np.int64(y[i]) * width + x[i]
-        if last_cycle[j] != c:
-            last_cycle[j] = c
-            n_on[j] = 0
-            n_off[j] = 0
-        if p[i] > 0:
-            n_on[j] += 1
-        else:
-            n_off[j] += 1
-        level = c_on[j] * n_on[j] - c_off[j] * n_off[j]
-        if level > 700.0:  # exp would overflow: no finite estimate from this event
+        level[j] += c_on[j] if p[i] > 0 else -c_off[j]
+        lv = level[j]
+        if lv > 300.0 or lv < -300.0:  # the sums would overflow: nothing from this event
             continue
         u = (dt + 0.5) / period_us
-        e = np.exp(level)
-        den = _interp(knots, t1, u) - e * t10
-        num = e * t20 - _interp(knots, t2, u)
+        a = _interp(knots, t1, u)
+        b = _interp(knots, t2, u)
+        g = np.exp(-lv)
+        if sums[j, 0] == 0.0:  # x and y from the first event's: no cancellation in the sums
+            sums[j, 7] = a * g
+            sums[j, 8] = b * g
+        xi = a * g - sums[j, 7]
+        yi = b * g - sums[j, 8]
+        sums[j, 0] += 1.0
+        sums[j, 1] += xi
+        sums[j, 2] += yi
+        sums[j, 3] += xi * xi
+        sums[j, 4] += xi * yi
+        den = a - t10 / g
+        num = t20 / g - b
         if den > 0.0 and num > 0.0:
-            acc[c, j] += np.log(num / den)
-            cnt[c, j] += 1.0
+            sums[j, 5] += np.log(num / den)
+            sums[j, 6] += 1.0
+    _invert_finish(c, sums, level, out)
+
+
+@nb.njit(cache=True)
+def _invert_finish(c, sums, level, out):
+    """Close cycle ``c``: each pixel's ``rho`` into ``out[c]``; its sums and level reset.
+    ``sums[j]``: events, sum x, sum y, sum x^2, sum xy (x and y less the first event's),
+    sum and count of the start-level estimates ``log rho``, the first event's x and y."""
+    for j in range(level.shape[0]):
+        n = sums[j, 0]
+        if n == 0.0:
+            continue
+        sx, sy, sxx, sxy = sums[j, 1], sums[j, 2], sums[j, 3], sums[j, 4]
+        det = n * sxx - sx * sx
+        rho = 0.0
+        if n >= 2.0 and det > 1e-9 * n * sxx:
+            rho = -(n * sxy - sx * sy) / det  # the slope of y = K - rho x
+        if not rho > 0.0 and sums[j, 6] > 0.0:
+            rho = np.exp(sums[j, 5] / sums[j, 6])  # no line: from the start level
+        if rho > 0.0:
+            out[c, j] = rho
+        for q in range(9):
+            sums[j, q] = 0.0
+        level[j] = 0.0
 
 
 # --------------------------------------------------------------------------- methods
@@ -454,16 +495,12 @@ def _invert(rec: Recording, windows: CycleWindows, p: _Params) -> np.ndarray:
     w1, w2 = rig.waveforms()
     knots = np.union1d(w1.phase, w2.phase)
     npx = rec.height * rec.width
-    acc = np.zeros((windows.n_cycles, npx))
-    cnt = np.zeros((windows.n_cycles, npx))
+    rho = np.zeros((windows.n_cycles, npx))
     ev = _sorted_events(rec)
     _invert_kernel(ev["x"], ev["y"], ev["p"], ev["t"], windows.start_us,
                    float(windows.window_us), float(rig.period_us), rec.width,
                    p.per_pixel(p.c_on, npx), p.per_pixel(p.c_off, npx), knots, w1(knots),
-                   w2(knots), np.zeros(npx, np.int64), np.zeros(npx, np.int64),
-                   np.full(npx, -1, np.int64), acc, cnt)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        rho = np.where(cnt > 0, np.exp(acc / np.maximum(cnt, 1.0)), 0.0)
+                   w2(knots), np.zeros(npx), np.zeros((npx, 9)), rho)
     return (p.l_const * rho).reshape(windows.n_cycles, rec.height, rec.width).astype(np.float32)
 
 
@@ -513,7 +550,8 @@ METHODS: dict[str, Method] = {
                "time to the first ON event (EvTemMap)"),
         Method("count", _count, False, False, "threshold", "L_const exp(c_on n_on)"),
         Method("invert", _invert, True, True, "threshold",
-               "every event inverted through the rig's waveforms"),
+               "the events' levels fitted through the rig's waveforms (the cycle's start "
+               "level free)"),
         Method("ml", _ml, True, True, "threshold",
                "maximum likelihood under the simulator's pixel model, with an uncertainty"),
     )
