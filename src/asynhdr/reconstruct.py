@@ -45,16 +45,17 @@ Radiometric inversion (``invert``): every event is an equation for ``L``. After
 ``l = c_on n_on - c_off n_off`` in log from its reference at the cycle's start, so with
 the rig's known waveforms and ``rho = L / L_const``::
 
-    rho T1(u) + T2(u) = K e^l
+    rho T1(u) + T2(u) = e^(l + d) (rho T1(0) + T2(0))
 
-with one unknown ``K`` for the cycle: where the reference stood when it began (not the
-start level in general: the last cycle left it anywhere within a threshold of it). So
-the points ``(T1(u) e^-l, T2(u) e^-l)`` of a pixel's events lie on the line
-``y = K - rho x``, fitted in least squares; exact for the ideal pixel on any waveforms.
-A pixel whose events draw no line (one event) takes the reference at the start level,
-``L = L_const (e^l T2(0) - T2(u)) / (T1(u) - e^l T1(0))``. It is linear in radiance (up
-to noise) and uses the c-map's per-pixel thresholds when given. Pixels with no usable
-event are 0.
+where ``d`` is how far above the start level the reference stood when the cycle began:
+not 0 in general (the last cycle left it anywhere within a threshold of it). A first
+pass finds ``d`` per pixel and cycle: the points ``(T1 e^-l, T2 e^-l)`` of its events lie
+on the line ``y = K - rho x``, ``K = (rho T1(0) + T2(0)) e^d``, fitted in least
+squares, ``d`` held within ``(-c_on, c_off)`` (0 without a line). The second solves each
+event for ``rho``; the image is their mean in log, each weighted by the inverse variance
+a level error gives it (an event where the signal is back at its start level says
+little). Exact for the ideal pixel on any waveforms, linear in radiance (up to noise);
+it uses the c-map's per-pixel thresholds when given. Pixels with no usable event are 0.
 
 Maximum likelihood (``ml``, :mod:`asynhdr.ml`): each pixel's events inverted together
 through the simulator's own pixel model (thresholds, dead time, reset noise, jitter,
@@ -332,16 +333,14 @@ def _interp(knots, values, x):
 
 
 @nb.njit(cache=True)
-def _invert_kernel(x, y, p, t, starts, window_us, period_us, width, c_on, c_off, knots,
-                   t1, t2, level, sums, out):
-    """Per pixel and cycle, ``rho`` from every event at once. After event ``i`` the pixel's
-    level has moved ``l_i = c_on n_on - c_off n_off`` from its reference at the cycle's
-    start, wherever that stood: ``rho T1(u_i) + T2(u_i) = K e^(l_i)`` with one unknown
-    ``K`` for the cycle. So ``x_i = T1 e^-l_i`` and ``y_i = T2 e^-l_i`` lie on the line
-    ``y = K - rho x``, fitted in least squares. Where the events draw no line (one event,
-    or one ``x``), the reference is taken at the cycle's start level:
-    ``rho = (e^l T2(0) - T2(u)) / (T1(u) - e^l T1(0))``, the geometric mean over the
-    events."""
+def _invert_offsets(x, y, p, t, starts, window_us, period_us, width, c_on, c_off, knots,
+                    t1, t2, level, sums, out):
+    """Per pixel and cycle, where its reference stood at the start (``out[c, j] = d``, the
+    log above the start level). After event ``i`` the pixel's level has moved
+    ``l_i = c_on n_on - c_off n_off`` from that reference: ``rho T1(u_i) + T2(u_i) =
+    K e^(l_i)`` with one unknown ``K`` for the cycle. So ``x_i = T1 e^-l_i`` and
+    ``y_i = T2 e^-l_i`` lie on the line ``y = K - rho x``, fitted in least squares
+    (:func:`_invert_finish`)."""
     ncyc = starts.shape[0]
     c = 0
     t10 = t1[0]
@@ -349,7 +348,7 @@ def _invert_kernel(x, y, p, t, starts, window_us, period_us, width, c_on, c_off,
     for i in range(t.shape[0]):
         ti = t[i]
         while c + 1 < ncyc and ti >= starts[c + 1]:
-            _invert_finish(c, sums, level, out)
+            _invert_finish(c, sums, level, t10, t20, c_on, c_off, out)
             c += 1
         dt = ti - starts[c]
         if dt < 0 or dt >= window_us:
@@ -364,44 +363,90 @@ def _invert_kernel(x, y, p, t, starts, window_us, period_us, width, c_on, c_off,
         b = _interp(knots, t2, u)
         g = np.exp(-lv)
         if sums[j, 0] == 0.0:  # x and y from the first event's: no cancellation in the sums
-            sums[j, 7] = a * g
-            sums[j, 8] = b * g
-        xi = a * g - sums[j, 7]
-        yi = b * g - sums[j, 8]
+            sums[j, 5] = a * g
+            sums[j, 6] = b * g
+        xi = a * g - sums[j, 5]
+        yi = b * g - sums[j, 6]
         sums[j, 0] += 1.0
         sums[j, 1] += xi
         sums[j, 2] += yi
         sums[j, 3] += xi * xi
         sums[j, 4] += xi * yi
-        den = a - t10 / g
-        num = t20 / g - b
-        if den > 0.0 and num > 0.0:
-            sums[j, 5] += np.log(num / den)
-            sums[j, 6] += 1.0
-    _invert_finish(c, sums, level, out)
+    _invert_finish(c, sums, level, t10, t20, c_on, c_off, out)
 
 
 @nb.njit(cache=True)
-def _invert_finish(c, sums, level, out):
-    """Close cycle ``c``: each pixel's ``rho`` into ``out[c]``; its sums and level reset.
-    ``sums[j]``: events, sum x, sum y, sum x^2, sum xy (x and y less the first event's),
-    sum and count of the start-level estimates ``log rho``, the first event's x and y."""
+def _invert_finish(c, sums, level, t10, t20, c_on, c_off, out):
+    """Close cycle ``c`` of :func:`_invert_offsets`: each pixel's ``d`` into ``out[c]``;
+    its sums and level reset. ``sums[j]``: events, sum x, sum y, sum x^2, sum xy (x and y
+    less the first event's), the first event's x and y.
+
+    The line ``y = K - rho x`` gives ``K = (rho T1(0) + T2(0)) e^d``: where the reference
+    stood at the start, ``d`` above the start level; a pixel that sat between its
+    thresholds has ``-c_on < d < c_off``, and ``d`` is held in that band. Without a line
+    (one event, one ``x``, a slope of the wrong sign) ``d = 0``."""
     for j in range(level.shape[0]):
         n = sums[j, 0]
         if n == 0.0:
             continue
-        sx, sy, sxx, sxy = sums[j, 1], sums[j, 2], sums[j, 3], sums[j, 4]
+        sx, sy, sxx, sxy, x0, y0 = (sums[j, 1], sums[j, 2], sums[j, 3], sums[j, 4],
+                                    sums[j, 5], sums[j, 6])
         det = n * sxx - sx * sx
-        rho = 0.0
+        d = 0.0
         if n >= 2.0 and det > 1e-9 * n * sxx:
             rho = -(n * sxy - sx * sy) / det  # the slope of y = K - rho x
-        if not rho > 0.0 and sums[j, 6] > 0.0:
-            rho = np.exp(sums[j, 5] / sums[j, 6])  # no line: from the start level
-        if rho > 0.0:
-            out[c, j] = rho
-        for q in range(9):
+            k = (sy + rho * sx) / n + y0 + rho * x0
+            start = rho * t10 + t20
+            if rho > 0.0 and k > 0.0 and start > 0.0:
+                d = min(max(np.log(k / start), -c_on[j]), c_off[j])
+        out[c, j] = d
+        for q in range(7):
             sums[j, q] = 0.0
         level[j] = 0.0
+
+
+@nb.njit(cache=True)
+def _invert_kernel(x, y, p, t, starts, window_us, period_us, width, c_on, c_off, knots,
+                   t1, t2, offset, n_on, n_off, last_cycle, acc, cnt):
+    """Per event: the level reached since the cycle start is ``c_on n_on - c_off n_off``
+    above the reference there, which stood ``offset[c, j]`` above the start level;
+    ``rho T1(u) + T2(u) = e^(level + offset) (rho T1(0) + T2(0))`` gives one estimate of
+    ``rho``. Accumulates ``log rho`` per cycle and pixel, each weighted by the inverse
+    variance a level error gives it (an event where the signal is back at its start
+    level says little of ``rho``: ``0 / 0``), and the weights."""
+    ncyc = starts.shape[0]
+    c = 0
+    t10 = t1[0]
+    t20 = t2[0]
+    for i in range(t.shape[0]):
+        ti = t[i]
+        while c + 1 < ncyc and ti >= starts[c + 1]:
+            c += 1
+        dt = ti - starts[c]
+        if dt < 0 or dt >= window_us:
+            continue
+        j = np.int64(y[i]) * width + x[i]
+        if last_cycle[j] != c:
+            last_cycle[j] = c
+            n_on[j] = 0
+            n_off[j] = 0
+        if p[i] > 0:
+            n_on[j] += 1
+        else:
+            n_off[j] += 1
+        level = c_on[j] * n_on[j] - c_off[j] * n_off[j] + offset[c, j]
+        if level > 700.0:  # exp would overflow: no finite estimate from this event
+            continue
+        u = (dt + 0.5) / period_us
+        e = np.exp(level)
+        den = _interp(knots, t1, u) - e * t10
+        num = e * t20 - _interp(knots, t2, u)
+        if den > 0.0 and num > 0.0:
+            # weighted by the inverse variance a level error gives it:
+            # d log rho / d level = e (T2(0) / num + T1(0) / den)
+            w = 1.0 / (e * (t20 / num + t10 / den)) ** 2
+            acc[c, j] += w * np.log(num / den)
+            cnt[c, j] += w
 
 
 # --------------------------------------------------------------------------- methods
@@ -495,12 +540,19 @@ def _invert(rec: Recording, windows: CycleWindows, p: _Params) -> np.ndarray:
     w1, w2 = rig.waveforms()
     knots = np.union1d(w1.phase, w2.phase)
     npx = rec.height * rec.width
-    rho = np.zeros((windows.n_cycles, npx))
     ev = _sorted_events(rec)
-    _invert_kernel(ev["x"], ev["y"], ev["p"], ev["t"], windows.start_us,
-                   float(windows.window_us), float(rig.period_us), rec.width,
-                   p.per_pixel(p.c_on, npx), p.per_pixel(p.c_off, npx), knots, w1(knots),
-                   w2(knots), np.zeros(npx), np.zeros((npx, 9)), rho)
+    c_on, c_off = p.per_pixel(p.c_on, npx), p.per_pixel(p.c_off, npx)
+    t1, t2 = w1(knots), w2(knots)
+    args = (ev["x"], ev["y"], ev["p"], ev["t"], windows.start_us, float(windows.window_us),
+            float(rig.period_us), rec.width, c_on, c_off, knots, t1, t2)
+    offset = np.zeros((windows.n_cycles, npx))
+    _invert_offsets(*args, np.zeros(npx), np.zeros((npx, 7)), offset)
+    acc = np.zeros((windows.n_cycles, npx))
+    cnt = np.zeros((windows.n_cycles, npx))
+    _invert_kernel(*args, offset, np.zeros(npx, np.int64), np.zeros(npx, np.int64),
+                   np.full(npx, -1, np.int64), acc, cnt)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rho = np.where(cnt > 0, np.exp(acc / np.where(cnt > 0, cnt, 1.0)), 0.0)
     return (p.l_const * rho).reshape(windows.n_cycles, rec.height, rec.width).astype(np.float32)
 
 
@@ -550,8 +602,8 @@ METHODS: dict[str, Method] = {
                "time to the first ON event (EvTemMap)"),
         Method("count", _count, False, False, "threshold", "L_const exp(c_on n_on)"),
         Method("invert", _invert, True, True, "threshold",
-               "the events' levels fitted through the rig's waveforms (the cycle's start "
-               "level free)"),
+               "every event inverted through the rig's waveforms (where the reference "
+               "stood at the cycle's start fitted first)"),
         Method("ml", _ml, True, True, "threshold",
                "maximum likelihood under the simulator's pixel model, with an uncertainty"),
     )
