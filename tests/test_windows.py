@@ -106,7 +106,7 @@ def simulated() -> Recording:
 
 
 @pytest.mark.parametrize("ext", [".h5", ".raw"])
-@pytest.mark.parametrize("method", ["exp", "ttfe", "count"])
+@pytest.mark.parametrize("method", ["exp", "ttfe", "count", "invert"])
 def test_file_cycle_by_cycle_equals_whole(tmp_path: Path, simulated: Recording, ext: str,
                                           method: str) -> None:
     path = tmp_path / f"rec{ext}"

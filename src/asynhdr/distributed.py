@@ -100,7 +100,7 @@ def simulate_distributed(client: Any, scene: Any, *, n_parts: int | None = None,
 
 
 def _reconstruct_run(path: str, first: int, starts: np.ndarray, window_us: float,
-                     options: dict[str, Any], source_options: dict[str, Any]
+                     warmup: int, options: dict[str, Any], source_options: dict[str, Any]
                      ) -> list[tuple[int, int, np.ndarray, dict[str, Any] | None]]:
     from asynhdr.io import open_source
     from asynhdr.io.cmap import load_cmap
@@ -113,7 +113,7 @@ def _reconstruct_run(path: str, first: int, starts: np.ndarray, window_us: float
         sink = {}
         opts["ml_options"] = dict(ml, out=sink)
     src = open_source(path, **source_options)
-    plan = reconstruct_cycles(src, windows=CycleWindows(starts, window_us),
+    plan = reconstruct_cycles(src, windows=CycleWindows(starts, window_us, warmup=warmup),
                               cmap=load_cmap(cmap) if cmap else None, **opts)
     return [(first + i, int(start), img, dict(sink) if sink is not None else None)
             for i, start, img in plan]
@@ -139,7 +139,8 @@ def reconstruct_distributed(client: Any, path: str | os.PathLike[str], windows: 
     ml = opts.get("ml_options")
     sink = ml.get("out") if ml is not None else None
     futures = [client.submit(_reconstruct_run, str(Path(path)), a,
-                             windows.start_us[a:b], windows.window_us, opts,
+                             windows.start_us[a:b], windows.window_us,
+                             max(0, min(windows.warmup - a, b - a)), opts,
                              dict(source_options or {}), pure=False)
                for a, b in _split(n, parts) if b > a]
     done = 0

@@ -51,11 +51,13 @@ where ``d`` is how far above the start level the reference stood when the cycle 
 not 0 in general (the last cycle left it anywhere within a threshold of it). A first
 pass finds ``d`` per pixel and cycle: the points ``(T1 e^-l, T2 e^-l)`` of its events lie
 on the line ``y = K - rho x``, ``K = (rho T1(0) + T2(0)) e^d``, fitted in least
-squares, ``d`` held within ``(-c_on, c_off)`` (0 without a line). The second solves each
-event for ``rho``; the image is their mean in log, each weighted by the inverse variance
-a level error gives it (an event where the signal is back at its start level says
-little). Exact for the ideal pixel on any waveforms, linear in radiance (up to noise);
-it uses the c-map's per-pixel thresholds when given. Pixels with no usable event are 0.
+squares, ``d`` held within ``(-c_on, c_off)`` (0 without a line, and in a warm-up cycle,
+whose pixels start on the start level). The second solves each event for ``rho``; the
+image is their mean in log, each weighted by its inverse variance: the level's error
+grows with the events since the start (a random walk of resets), and an event where the
+signal is back at its start level says little. Exact for the ideal pixel on any
+waveforms, linear in radiance (up to noise); it uses the c-map's per-pixel thresholds
+when given. Pixels with no usable event are 0.
 
 Maximum likelihood (``ml``, :mod:`asynhdr.ml`): each pixel's events inverted together
 through the simulator's own pixel model (thresholds, dead time, reset noise, jitter,
@@ -411,9 +413,10 @@ def _invert_kernel(x, y, p, t, starts, window_us, period_us, width, c_on, c_off,
     """Per event: the level reached since the cycle start is ``c_on n_on - c_off n_off``
     above the reference there, which stood ``offset[c, j]`` above the start level;
     ``rho T1(u) + T2(u) = e^(level + offset) (rho T1(0) + T2(0))`` gives one estimate of
-    ``rho``. Accumulates ``log rho`` per cycle and pixel, each weighted by the inverse
-    variance a level error gives it (an event where the signal is back at its start
-    level says little of ``rho``: ``0 / 0``), and the weights."""
+    ``rho``. Accumulates ``log rho`` per cycle and pixel, each weighted by its inverse
+    variance (the level's error grows with the events since the start; an event where
+    the signal is back at its start level says little of ``rho``: ``0 / 0``), and the
+    weights."""
     ncyc = starts.shape[0]
     c = 0
     t10 = t1[0]
@@ -442,9 +445,10 @@ def _invert_kernel(x, y, p, t, starts, window_us, period_us, width, c_on, c_off,
         den = _interp(knots, t1, u) - e * t10
         num = e * t20 - _interp(knots, t2, u)
         if den > 0.0 and num > 0.0:
-            # weighted by the inverse variance a level error gives it:
-            # d log rho / d level = e (T2(0) / num + T1(0) / den)
-            w = 1.0 / (e * (t20 / num + t10 / den)) ** 2
+            # weighted by its inverse variance: d log rho / d level = e (T2(0) / num +
+            # T1(0) / den) times the level's error, which grows with the resets since
+            # the start as a random walk (variance in proportion to the events)
+            w = 1.0 / ((e * (t20 / num + t10 / den)) ** 2 * (n_on[j] + n_off[j]))
             acc[c, j] += w * np.log(num / den)
             cnt[c, j] += w
 
@@ -547,6 +551,7 @@ def _invert(rec: Recording, windows: CycleWindows, p: _Params) -> np.ndarray:
             float(rig.period_us), rec.width, c_on, c_off, knots, t1, t2)
     offset = np.zeros((windows.n_cycles, npx))
     _invert_offsets(*args, np.zeros(npx), np.zeros((npx, 7)), offset)
+    offset[:windows.warmup] = 0.0  # a warm-up cycle's pixels start on the start level
     acc = np.zeros((windows.n_cycles, npx))
     cnt = np.zeros((windows.n_cycles, npx))
     _invert_kernel(*args, offset, np.zeros(npx, np.int64), np.zeros(npx, np.int64),
@@ -841,7 +846,8 @@ class CycleImages:
                 ev, _ = sort_events(win.events)
                 rec = Recording(events=ev, width=self.width, height=self.height,
                                 triggers=win.triggers, metadata=self.metadata)
-                one = CycleWindows(np.array([win.start_us]), w.window_us)
+                one = CycleWindows(np.array([win.start_us]), w.window_us,
+                                   warmup=int(win.i < w.warmup))
                 yield win.i, win.start_us, self.method.function(rec, one, self._params)[0]
                 if self._progress is not None:
                     self._progress("reconstruct", win.i + 1, len(self))
