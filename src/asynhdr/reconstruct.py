@@ -388,6 +388,7 @@ def _invert_finish(c, sums, level, t10, t20, c_on, c_off, out):
     thresholds has ``-c_on < d < c_off``, and ``d`` is held in that band. Without a line
     (one event, one ``x``, a slope of the wrong sign) ``d = 0``."""
     for j in range(level.shape[0]):
+        level[j] = 0.0  # the next cycle counts from its own start, events or not
         n = sums[j, 0]
         if n == 0.0:
             continue
@@ -404,7 +405,6 @@ def _invert_finish(c, sums, level, t10, t20, c_on, c_off, out):
         out[c, j] = d
         for q in range(7):
             sums[j, q] = 0.0
-        level[j] = 0.0
 
 
 @nb.njit(cache=True)
