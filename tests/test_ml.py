@@ -287,3 +287,55 @@ def test_cli_simulate_rig_out_then_reconstruct_ml_with_rig(tmp_path) -> None:
     assert (out / "flat_ml_0001_valid.png").is_file()
     np.testing.assert_allclose(img, 300.0, rtol=2e-3)
     assert np.all(sig < 0.01)
+
+
+def test_table_keeps_the_kinks_and_interpolates_within_its_tolerance() -> None:
+    # a polyline with kinks at 3 and 7 on a grid of 0.5: exactly the ends and the kinks
+    # are needed; a parabola sampled finely: every dropped value within the tolerance
+    s = np.arange(0.0, 10.01, 0.5)
+    kinked = np.interp(s, [0.0, 3.0, 7.0, 10.0], [0.0, 3.0, -1.0, 2.0])
+    keep = ml.decimate_grid(s, np.stack([kinked, 2.0 * kinked]), 1e-9)
+    assert s[keep].tolist() == [0.0, 3.0, 7.0, 10.0]
+    fine = np.linspace(0.0, 1.0, 2001)
+    curve = np.stack([fine ** 2, np.sin(3.0 * fine)])
+    tol = 1e-4
+    keep = ml.decimate_grid(fine, curve, tol)
+    assert keep[0] == 0 and keep[-1] == fine.size - 1
+    for row in curve:
+        err = np.abs(np.interp(fine, fine[keep], row[keep]) - row)
+        assert err.max() <= tol
+    # a segment of length h on x^2 errs by h^2 / 4: h = 0.02 at most, so at least 50
+    # segments, and the greedy choice keeps no more than about twice that
+    assert 50 <= keep.size - 1 <= 110
+
+
+def test_photoreceptor_table_reproduces_the_fine_grid() -> None:
+    # the decimated table, interpolated at the model's slots, against the low-pass on its
+    # full grid, within TABLE_TOL (float32 storage adds ~1e-6)
+    from asynhdr.sensor.photoreceptor import DEFAULT_DT_US, Lowpass, lowpass_rows, time_grid
+
+    rig = default_rig("imx636")
+    model = ml.ml_model(rig, IMX636, window_us=20_000.0)
+    # the table spans the cycle: a twentieth of the low-pass's grid times at most
+    assert model.mode == 1 and model.rows.shape[0] < 0.05 * rig.period_us / DEFAULT_DT_US
+    j = np.arange(0, model.rows.shape[1] - 1, 17)
+    w1, w2 = rig.waveforms()
+    knots = np.union1d(w1.phase, w2.phase)
+    sensor = IMX636
+    lp = Lowpass(sensor.tau_ref_us * (sensor.cutoff_irradiance + sensor.dark_irradiance),
+                 sensor.dark_irradiance, sensor.tau_max_us)
+    grid = np.exp(model.g0 + model.dlog * np.arange(model.rows.shape[1]))
+    i_max = rig.k_lens * (grid[-1] * w1(knots).max() + rig.l_const * w2(knots).max())
+    s = time_grid(knots, w1(knots), w2(knots), period_us=float(rig.period_us),
+                  tau_min_us=min(lp.tau_num / (i_max + lp.dark_irradiance), lp.tau_max_us))
+    u = s / rig.period_us
+    a1, b2 = rig.k_lens * w1(u), rig.k_lens * rig.l_const * w2(u)
+    _, y_end = lowpass_rows(grid[j], a1, b2, s, np.log(a1[0] * grid[j] + b2[0]), lp)
+    fine, _ = lowpass_rows(grid[j], a1, b2, s, y_end, lp)
+    m = np.arange(0, 20_000, 7)
+    tc = m + 0.5 * sensor.timestamp_resolution_us - sensor.latency_us
+    want = np.stack([np.interp(tc, s, row) for row in fine])
+    k = model.locate[m, 0].astype(np.int64)
+    f = model.locate[m, 1].astype(np.float64)
+    got = (model.rows[k][:, j, 0] + f[:, None] * model.rows[k][:, j, 1]).T
+    assert np.abs(got - want).max() <= ml.TABLE_TOL + 1e-5
