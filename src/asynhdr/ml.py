@@ -1095,9 +1095,6 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
             cand += 1
         if 0.0 < sgp < 1e-3:
             g = gp
-        elif attempt > 0 and not collapsed:
-            # the same events but one: from the best fit so far
-            g = best_g
         else:
             g = _start(lo, hi, t, p, mode, dead, exact, v0a, v0b, rows, g0, dlog, locate, wmax,
                        g_lo, g_hi, net_g, net_v, c1, c2, mu_u, skip, skip2, split)
