@@ -411,7 +411,7 @@ def decimate_grid(s: np.ndarray, rows: np.ndarray, tol: float) -> np.ndarray:
 # ----------------------------------------------------------------------------- model values
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, inline="always", error_model="numpy")
 def _at_g(mode, g, g0, dlog, nr):
     """What :func:`_eval` needs of ``g = ln L``, computed once per pass over the events:
     the grid row ``j`` below ``g`` and the weight ``w`` of the row above (mode 1), or
@@ -427,7 +427,7 @@ def _at_g(mode, g, g0, dlog, nr):
     return j, x - j, 0.0
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, inline="always", error_model="numpy")
 def _eval(mode, j, w, e, m, end, exact, v0a, v0b, rows, dlog, locate):
     """``(V, dV/dg, dV/dt)`` at whole µs slot ``m`` (``end``: the dead time's end; ``m < 0``:
     the cycle start) for the ``g`` that :func:`_at_g` gave ``(j, w, e)``."""
@@ -454,7 +454,7 @@ def _eval(mode, j, w, e, m, end, exact, v0a, v0b, rows, dlog, locate):
     return va + w * (vb - va), (vb - va) / dlog, (da + w * (db - da)) * locate[m, 4 + o // 2]
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, inline="always", error_model="numpy")
 def _slope_g(mode, j, w, e, m, exact, rows, dlog, locate):
     """``d(dV/dt)/dg`` at the crossing time of whole µs slot ``m`` (``m >= 0``), for the
     ``g`` that :func:`_at_g` gave ``(j, w, e)``."""
@@ -472,7 +472,7 @@ _JACOBIAN_MAX = 10.0
 where ``dV/dt`` passes zero, the term is large and means little)."""
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _moment(mode, g, t, p, lo, hi, dead, con, coff, u, exact, v0a, v0b, rows, g0, dlog,
             locate, wmax, skip, skip2, split):
     """``sum_i r_i(g)`` over the events before slot ``split``, at fixed thresholds and
@@ -513,7 +513,7 @@ def _moment(mode, g, t, p, lo, hi, dead, con, coff, u, exact, v0a, v0b, rows, g0
     return acc
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, inline="always", error_model="numpy")
 def _solve4(h, b, x, lmat, y, z):
     """Solve the symmetric positive-definite ``h x = b`` (4x4, Cholesky; ``lmat``, ``y``,
     ``z`` are work space); also returns ``(h^-1)[0, 0]``. False when ``h`` is not positive
@@ -551,7 +551,7 @@ def _solve4(h, b, x, lmat, y, z):
     return True, v00
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
             rows, g0, dlog, locate, wmax, h, b, first_var, skip, skip2, stat, lam_nll):
     """Accumulate the Gauss-Newton normal equations of the events ``lo..hi`` at
@@ -703,7 +703,7 @@ def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exac
     return chi2
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _initial(net, net_g, net_v):
     """``g`` where the model's net level change over the window, ``net_v`` (rising along
     ``net_g``), equals ``net`` (linear interpolation, clamped)."""
@@ -725,7 +725,7 @@ def _initial(net, net_g, net_v):
     return net_g[lo] + f * (net_g[hi] - net_g[lo])
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _start(lo, hi, t, p, mode, dead, exact, v0a, v0b, rows, g0, dlog, locate, wmax,
            g_lo, g_hi, net_g, net_v, c1, c2, mu_u, skip, skip2, split):
     """The fit's starting ``g``: where the model's net level change matches the events';
@@ -795,7 +795,7 @@ def _start(lo, hi, t, p, mode, dead, exact, v0a, v0b, rows, g0, dlog, locate, wm
     return g
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _gauss_newton(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
                   g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp,
                   n_iter, skip, skip2, h, bvec, x, lmat, wy, wz, stat, res):
@@ -852,7 +852,7 @@ def _gauss_newton(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v
     res[5] = chi2
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
              dlog, locate, wmax, c1, c2, s1, s2, su, mu_u, skip, skip2, h, bvec, st):
     """What a fit ``res`` (:func:`_gauss_newton`'s) is judged by against another: twice the
@@ -875,7 +875,7 @@ def _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
         + ((res[2] - mu_u) / su) ** 2
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, inline="always", error_model="numpy")
 def _preferred(obj, var, best_obj, best_var):
     """Whether a fit (objective ``obj``, variance of ``ln L`` ``var``) is to replace the
     best so far: a fit where ``ln L`` carries information (variance below
@@ -887,7 +887,7 @@ def _preferred(obj, var, best_obj, best_var):
     return obj < best_obj
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _profile_scan(a0, step, n_g, mode, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, exact,
                   v0a, v0b, rows, g0, dlog, locate, wmax, uu, first_var, s1, s2, skip,
                   skip2, work):
@@ -992,7 +992,7 @@ def _profile_scan(a0, step, n_g, mode, con, coff, t, p, lo, hi, dead, sr2, tq2, 
     return g_best
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _held_thresholds(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
                      g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp,
                      sgp, skip, skip2, h, bvec, x, lmat, wy, wz, stat, res, st_o):
@@ -1029,7 +1029,7 @@ def _held_thresholds(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a
     res[1] = res2[1]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _fit_from(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
               dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp, skip,
               skip2, h, bvec, x, lmat, wy, wz, stat, res, st_o):
@@ -1043,7 +1043,7 @@ def _fit_from(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, 
                      skip, skip2, h, bvec, x, lmat, wy, wz, stat, res, st_o)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
                dlog, locate, wmax, g_lo, g_hi, net_g, net_v, c1, c2, s1, s2, gp, sgp,
                fixed, h, bvec, x, lmat, wy, wz, out, u_sd, stat, res, scan, split, st_o,
@@ -1209,7 +1209,7 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
     out[4] = flag
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, parallel=True, error_model="numpy")
 def _estimate_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
                      dlog, locate, wmax, g_lo, g_hi, net_g, net_v, min_events, con0,
                      coff0, scon, scoff, g_prior, sg_prior, fixed, out_g, out_sd, out_con,
@@ -1257,7 +1257,7 @@ def _estimate_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
 # ----------------------------------------------------------------------------- grouping
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _group_kernel(x, y, p, t, t0, t1, width, npx, off, out_t, out_p):
     """Counting sort of the events with ``t0 <= t < t1`` by pixel (stable: time order
     kept). ``off`` gets the per-pixel offsets; returns the number kept."""

@@ -180,7 +180,7 @@ class CycleWindows:
 # --------------------------------------------------------------------------- sums
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, parallel=True, error_model="numpy")
 def _sums_kernel(x, y, p, t, starts, window_us, width, table, w_on, w_off, lo, hi, c0, row0,
                  acc, bad):
     """Scatter-add ``table[t - start] * w`` per cycle and pixel (events sorted by time),
@@ -285,7 +285,7 @@ def weighted_sums(
     return out.reshape(windows.n_cycles, rec.height, rec.width)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _first_on_kernel(x, y, p, t, starts, window_us, width, out):
     ncyc = starts.shape[0]
     c = 0
@@ -314,7 +314,7 @@ def first_on_phase(rec: Recording, windows: CycleWindows) -> np.ndarray:
     return out.reshape(windows.n_cycles, rec.height, rec.width)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, inline="always", error_model="numpy")
 def _interp(knots, values, x):
     """Piecewise-linear interpolation at ``x`` (knots increasing, x clamped)."""
     n = knots.shape[0]
@@ -334,7 +334,7 @@ def _interp(knots, values, x):
     return values[lo] + (values[hi] - values[lo]) * w
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _invert_offsets(x, y, p, t, starts, window_us, period_us, width, c_on, c_off, knots,
                     t1, t2, level, sums, out):
     """Per pixel and cycle, where its reference stood at the start (``out[c, j] = d``, the
@@ -377,7 +377,7 @@ def _invert_offsets(x, y, p, t, starts, window_us, period_us, width, c_on, c_off
     _invert_finish(c, sums, level, t10, t20, c_on, c_off, out)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _invert_finish(c, sums, level, t10, t20, c_on, c_off, out):
     """Close cycle ``c`` of :func:`_invert_offsets`: each pixel's ``d`` into ``out[c]``;
     its sums and level reset. ``sums[j]``: events, sum x, sum y, sum x^2, sum xy (x and y
@@ -407,7 +407,7 @@ def _invert_finish(c, sums, level, t10, t20, c_on, c_off, out):
             sums[j, q] = 0.0
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _invert_kernel(x, y, p, t, starts, window_us, period_us, width, c_on, c_off, knots,
                    t1, t2, offset, n_on, n_off, last_cycle, acc, cnt):
     """Per event: the level reached since the cycle start is ``c_on n_on - c_off n_off``

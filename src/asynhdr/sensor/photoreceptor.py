@@ -206,7 +206,7 @@ def time_grid(
 # ----------------------------------------------------------------------------- low-pass
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, inline="always", error_model="numpy")
 def _one_minus_phi1(q):
     """``1 - (1 - exp(-q)) / q`` without cancellation for small ``q``."""
     if q < 1e-3:
@@ -214,7 +214,7 @@ def _one_minus_phi1(q):
     return 1.0 - (-math.expm1(-q)) / q
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, inline="always", error_model="numpy")
 def _curvature_gain(q):
     """``K(q) = int_0^1 q exp(-q w) w (1 - w) dw``: the response at a step's end to an
     input ``4 w (1 - w)`` (a parabola through 0 at both ends and 1 in the middle)."""
@@ -225,7 +225,7 @@ def _curvature_gain(q):
     return (1.0 - e * (1.0 + q)) / q - (2.0 - e * (q * q + 2.0 * q + 2.0)) / (q * q)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _lowpass_row(irr, s, y0, tau_num, dark, tau_max, out):
     """``out[k] = y(s_k)`` for the irradiance ``irr[k]`` at the grid points (linear in time
     between them), ``y(0) = y0``; returns ``y`` at the last point.
@@ -253,7 +253,7 @@ def _lowpass_row(irr, s, y0, tau_num, dark, tau_max, out):
     return y
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, parallel=True, error_model="numpy")
 def _lowpass_rows_static(radiance, a1, b2, s, y0, tau_num, dark, tau_max, out, y_end):
     n = radiance.shape[0]
     for r in nb.prange(n):
@@ -278,7 +278,7 @@ def lowpass_rows(radiance: np.ndarray, a1: np.ndarray, b2: np.ndarray, s: np.nda
     return out, y_end
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, parallel=True, error_model="numpy")
 def _pixel_rows(frames, fa, fw, a1, b2, s, y0, lowpass, tau_num, dark, tau_max, out, y_end):
     n = frames.shape[0]
     nk = s.shape[0]
@@ -356,7 +356,7 @@ def radiance_grid(radiance: np.ndarray, *, dlog: float, floor: float
 # ----------------------------------------------------------------------------- runs
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _pair_runs(ra, rb, out):
     """Monotone runs of every combination ``wa ra + wb rb`` (``wa, wb >= 0``): ranges of
     knots where both rows move the same way (direction +1 or -1), or where they
@@ -392,7 +392,7 @@ def _pair_runs(ra, rb, out):
     return nr + 1
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _max_runs(ra, rb):
     """An upper bound on the runs of a pair: one more than the number of times the pair
     of interval slopes' signs changes."""
@@ -411,13 +411,13 @@ def _max_runs(ra, rb):
     return n
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, parallel=True, error_model="numpy")
 def _pair_caps(rows, pa, pb, out):
     for i in nb.prange(pa.shape[0]):
         out[i] = _max_runs(rows[pa[i]], rows[pb[i]])
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, parallel=True, error_model="numpy")
 def _all_pair_runs(rows, pa, pb, cap_off, counts, tab):
     for i in nb.prange(pa.shape[0]):
         counts[i] = _pair_runs(rows[pa[i]], rows[pb[i]], tab[cap_off[i]:cap_off[i + 1]])
