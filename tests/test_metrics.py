@@ -262,3 +262,28 @@ def test_mosaic_draws_holes_in_their_own_colour(tmp_path) -> None:
     magenta = np.all(np.abs(rgb - np.array(HOLE_RGB)) <= 2, axis=2)
     left, right = magenta[:, : rgb.shape[1] // 2], magenta[:, rgb.shape[1] // 2:]
     assert right.sum() > 20 and left.sum() == 0
+
+
+def test_k_sweep_legend_names_each_sensor_and_both_line_styles(tmp_path, monkeypatch) -> None:
+    import asynhdr.plots as plots
+
+    seen = {}
+
+    def keep(fig, path):
+        seen["fig"] = fig
+        return tmp_path / "k.png"
+
+    monkeypatch.setattr(plots, "_save", keep)
+    row = {"snr_db_raw": 12.0, "dr_db_raw": 30.0, "snr_db_cmap": 20.0, "dr_db_cmap": 60.0}
+    quiet = {"snr_db_raw": None, "dr_db_raw": 80.0, "snr_db_cmap": None, "dr_db_cmap": 80.0}
+    sweeps = {"ideal": [{"k": k, **quiet} for k in (1.0, 10.0)],
+              "v2e": [{"k": k, **row} for k in (1.0, 10.0)]}
+    plots.plot_k_sweep(sweeps, tmp_path / "k.png")
+    fig = seen["fig"]
+    labels = [t.get_text() for t in fig.legends[0].get_texts()]
+    assert labels[1:] == ["v2e", "no c-map", "with c-map"]
+    assert labels[0].startswith("ideal (no noise")
+    # the legend sits below the panels, over none of the data
+    assert not any(ax.get_legend() for ax in fig.axes)
+    styles = [h.get_linestyle() for h in fig.legends[0].legend_handles[-2:]]
+    assert styles == ["--", "-"]

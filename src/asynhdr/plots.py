@@ -137,29 +137,41 @@ def plot_chart_response(result: ChartResult, path: str | os.PathLike[str]) -> Pa
 def plot_k_sweep(sweeps: dict[str, list[dict[str, Any]]], path: str | os.PathLike[str],
                  *, paper_k: float = 10.0) -> Path:
     """Mean SNR of the exponential weighting ``2^(-k t)`` against ``k`` (the paper's Fig.
-    5b), per sensor, without (dashed) and with (solid) c-map."""
+    5b), per sensor (colour), without (dashed) and with (solid) c-map. One legend below
+    both panels: the sensors, then the two line styles, drawn long enough to tell apart.
+    A sensor without any finite SNR (a noise-free pixel) says so in its entry."""
+    from matplotlib.lines import Line2D
+
     plt = _pyplot()
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.2))
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.8))
+    handles = []
     for i, (name, rows) in enumerate(sweeps.items()):
         if not rows:
             continue
         color = f"C{i}"
         ks = [r["k"] for r in rows]
+        finite = False
         for tag, ls in (("raw", "--"), ("cmap", "-")):
             snr = [np.nan if r[f"snr_db_{tag}"] is None else r[f"snr_db_{tag}"] for r in rows]
-            axes[0].plot(ks, snr, ls=ls, marker=".", color=color,
-                         label=f"{name} {'with' if tag == 'cmap' else 'no'} c-map")
-            axes[1].plot(ks, [r[f"dr_db_{tag}"] for r in rows], ls=ls, marker=".",
-                         color=color, label=f"{name} {'with' if tag == 'cmap' else 'no'} c-map")
+            finite = finite or bool(np.isfinite(snr).any())
+            axes[0].plot(ks, snr, ls=ls, lw=1.6, marker=".", color=color)
+            axes[1].plot(ks, [r[f"dr_db_{tag}"] for r in rows], ls=ls, lw=1.6, marker=".",
+                         color=color)
+        label = name if finite else f"{name} (no noise: SNR not finite, not drawn)"
+        handles.append(Line2D([], [], color=color, lw=3, label=label))
+    handles += [Line2D([], [], color="0.25", ls="--", lw=1.6, label="no c-map"),
+                Line2D([], [], color="0.25", ls="-", lw=1.6, label="with c-map")]
     for ax in axes:
         ax.axvline(paper_k, color="0.6", lw=0.8)
         ax.set_xlabel("k of 2^(-k t)")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
     axes[0].set_ylabel("mean patch SNR over responding patches (dB)")
     axes[1].set_ylabel("dynamic range, EMVA (dB)")
     axes[0].set_title("k sweep: SNR (grey line: the paper's k = 10)")
     axes[1].set_title("k sweep: dynamic range")
+    fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=8,
+               handlelength=3.5, frameon=False)
+    fig.tight_layout(rect=(0.0, 0.07, 1.0, 1.0))
     return _save(fig, path)
 
 
