@@ -148,9 +148,10 @@ class MlModel:
         the reference is taken at the end of each dead time; else it walks by ``c``.
     reset_sigma, jitter_us, res_us : reset noise (log), jitter (µs), timestamp quantum (µs).
     noise_rate_per_us : background events per pixel per µs (outlier rate).
-    exact : ``(W, 8)`` float64 per whole µs slot for mode 0: ``a1, b2, da1, db2`` at the crossing
-        time ``m + res/2 - latency`` and at the dead time's end ``m + res/2 + refractory``
-        (``a1 = k_lens T1``, ``b2 = k_lens L_const T2``, ``d`` per µs).
+    exact : ``(W, 8)`` float64 per whole µs slot for mode 0: ``a1, b2, da1, db2`` at the
+        crossing time ``m + res/2 - latency`` and at the dead time's end ``m + res/2 +
+        refractory`` (``a1 = k_lens T1``, ``b2 = k_lens L_const T2``, ``d`` per µs); a
+        single row of zeros in mode 1, which does not read it.
     v0 : ``(a1, b2)`` at the cycle start (mode 0).
     rows : ``(K, n_rows, 2)`` float32 photoreceptor output at grid time ``s_k`` for grid
         value ``g_j = g0 + j dlog``, and its increment to ``s_{k+1}`` (mode 1); the times
@@ -228,7 +229,7 @@ TABLE_TOL = 1e-4
 """Largest error (log units) of the photoreceptor table's linear interpolation in time, at
 the times of the low-pass's grid: the table keeps only the grid times it needs
 (:func:`decimate_grid`), a hundredth of the IMX636's reset noise. On the default IMX636
-rig it keeps 1,133 of 52,265 times (2.6 MB instead of 121 MB): the fit's passes over the
+rig it keeps 1,130 of 52,265 times (2.6 MB instead of 121 MB): the fit's passes over the
 events then read a table in cache."""
 
 _SPLIT_TIMES = 2048
@@ -361,6 +362,7 @@ def ml_model(rig: Rig, sensor: SensorParams, *, window_us: float | None = None,
     tab[:, :, 0] = rows.T
     tab[:-1, :, 1] = np.diff(rows, axis=1).T
     tab[-1, :, 1] = 0.0
+    common["exact"] = np.zeros((1, 8))  # read in mode 0 only
     return MlModel(mode=1, rows=tab, g0=g_lo, dlog=float(dlog),
                    locate=np.stack([kc, fc, ke, fe, hc, he], axis=1).astype(np.float32),
                    net_g=g_lo + dlog * np.arange(n_rows), net_v=nvs[0][0],
