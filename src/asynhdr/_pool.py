@@ -1,4 +1,5 @@
-"""The process's worker threads for compiled (``nogil``) kernels.
+"""The process's worker threads for compiled (``nogil``) kernels, and the order in which
+numba's parallel loops take blocks of pixels.
 
 One pool a process, with one thread fewer than numba's thread count
 (``NUMBA_NUM_THREADS``): the calling thread does a share of the work itself.
@@ -11,8 +12,9 @@ import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import numba
+import numpy as np
 
-__all__ = ["executor", "worker_threads"]
+__all__ = ["block_order", "executor", "worker_threads"]
 
 _lock = threading.Lock()
 _pool: ThreadPoolExecutor | None = None
@@ -45,3 +47,13 @@ def executor() -> ThreadPoolExecutor:
             )
             _pool_pid = os.getpid()
         return _pool
+
+
+def block_order(n: int, block: int) -> np.ndarray:
+    """Indices of the ``ceil(n / block)`` blocks of ``n`` pixels in an order that gives
+    every thread a share of each part of the image: numba's parallel loop hands each thread
+    one contiguous range of its iterations, and an image's cost is seldom even (a bright
+    sky above a dark ground). Iteration ``i`` of such a loop takes block ``order[i]``."""
+    nblk = max(1, (n + block - 1) // block)
+    threads = max(1, numba.get_num_threads())
+    return np.argsort(np.arange(nblk) % threads, kind="stable").astype(np.int64)

@@ -69,6 +69,7 @@ from typing import Any
 import numba as nb
 import numpy as np
 
+from asynhdr._pool import block_order
 from asynhdr.defects import fill_defects
 from asynhdr.events import Recording
 from asynhdr.rig import Rig
@@ -1215,13 +1216,14 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
 def _estimate_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
                      dlog, locate, wmax, g_lo, g_hi, net_g, net_v, min_events, con0,
                      coff0, scon, scoff, g_prior, sg_prior, fixed, out_g, out_sd, out_con,
-                     out_coff, out_flag, u_sd, split, net_v2, split2):
-    """Fit every pixel (module docstring), in blocks of ``_BLOCK`` per thread. ``fixed``:
-    evaluate the information at ``g_prior`` with no fit (the bound); ``sg_prior > 0``: a
-    Gaussian prior on ``g``."""
+                     out_coff, out_flag, u_sd, split, net_v2, split2, order):
+    """Fit every pixel (module docstring), in blocks of ``_BLOCK``, taken in the order
+    ``order`` (:func:`asynhdr._pool.block_order`). ``fixed``: evaluate the information at
+    ``g_prior`` with no fit (the bound); ``sg_prior > 0``: a Gaussian prior on ``g``."""
     npx = off.shape[0] - 1
-    nblk = (npx + _BLOCK - 1) // _BLOCK
-    for blk in nb.prange(nblk):
+    nblk = order.shape[0]
+    for bi in nb.prange(nblk):
+        blk = order[bi]
         h = np.zeros((4, 4))
         bvec = np.zeros(4)
         x = np.zeros(4)
@@ -1380,7 +1382,8 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
                      np.ascontiguousarray(con), np.ascontiguousarray(coff),
                      np.ascontiguousarray(scon), np.ascontiguousarray(scoff), gp, sp, fixed,
                      out_g, out_sd, out_con, out_coff, out_flag, float(start_sigma),
-                     np.int64(model.split_us), model.net_v2, np.int64(model.split2_us))
+                     np.int64(model.split_us), model.net_v2, np.int64(model.split2_us),
+                     block_order(npx, _BLOCK))
     return out_g, out_sd, out_con, out_coff, out_flag, counts
 
 

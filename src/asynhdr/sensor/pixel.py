@@ -47,6 +47,7 @@ from typing import Any
 import numba as nb
 import numpy as np
 
+from asynhdr._pool import block_order
 from asynhdr.events import EVENT_DTYPE
 from asynhdr.sensor._rng import hash_normal2_at, hash_stream
 
@@ -722,14 +723,6 @@ def _bounds(pix, order, s, rows, ia, ib, wa, wb, log_domain, mode, d1, d2, piece
             out[i] = np.int64(total) + 2 + (nz_off[i + 1] - nz_off[i])
 
 
-def _block_order(n: int, block: int) -> np.ndarray:
-    """Blocks of pixels in an order that gives every thread a share of each image part
-    (numba's parallel loop hands each thread one contiguous range)."""
-    nblk = max(1, (n + block - 1) // block)
-    threads = max(1, nb.get_num_threads())
-    return np.argsort(np.arange(nblk) % threads, kind="stable").astype(np.int64)
-
-
 _BLOCK = 64
 
 
@@ -766,7 +759,7 @@ class CycleFiring:
         else:
             self.index = (np.zeros(2, dtype=np.int64), np.zeros((1, 2)),
                           np.zeros((1, 2), dtype=np.int32))
-        self.order = _block_order(n, _BLOCK)
+        self.order = block_order(n, _BLOCK)
         # the order pixels are fired in: those reading one pair of rows one after another,
         # so the pair's rows and ladder stay in the core's cache (the events are the same
         # in any order)
@@ -822,7 +815,7 @@ class CycleFiring:
             lost[:] = 0
             act = (self.all_pixels if final else
                    self._by_pair(np.flatnonzero(state.next_fire[self.pix] < stop)))
-            self._kernel(act, _block_order(act.size, _BLOCK), stop, final, True, True,
+            self._kernel(act, block_order(act.size, _BLOCK), stop, final, True, True,
                          self._held_buffers, inputs)
             if overflow.any():
                 raise RuntimeError("pixel model: a held pixel fired more than one event")
