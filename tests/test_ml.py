@@ -339,3 +339,27 @@ def test_photoreceptor_table_reproduces_the_fine_grid() -> None:
     f = model.locate[m, 1].astype(np.float64)
     got = (model.rows[k][:, j, 0] + f[:, None] * model.rows[k][:, j, 1]).T
     assert np.abs(got - want).max() <= ml.TABLE_TOL + 1e-5
+
+
+def test_ml_reports_its_fits_as_they_go_with_the_same_images() -> None:
+    # the fits in parts, each reported: pixel-cycles rising to their total, and the same
+    # images and deviations as in one part
+    rig = default_rig("imx636")
+    gen = np.random.default_rng(3)
+    scene = np.exp(gen.uniform(math.log(1.0), math.log(1e4), (24, 48)))
+    rec = simulate(scene, rig=rig, sensor=IMX636, n_cycles=2, rng=0)
+    w = CycleWindows(np.array([0, int(rig.period_us)]), rig.ramp_us)
+    seen: list[tuple[str, int, int]] = []
+    out_a: dict = {}
+    out_b: dict = {}
+    a = ml.reconstruct_ml(rec, w, rig=rig, out=out_a)
+    b = ml.reconstruct_ml(rec, w, rig=rig, out=out_b,
+                          progress=lambda *args: seen.append(args))
+    np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(out_a["sigma_log"], out_b["sigma_log"])
+    total = 2 * 24 * 48
+    done = [d for _, d, _ in seen]
+    assert {s for s, _, _ in seen} == {"ml: pixels fitted"}
+    assert all(t == total for _, _, t in seen)
+    assert done == sorted(done) and done[-1] == total
+    assert len(done) >= 2 * 4  # several reports a cycle

@@ -1358,11 +1358,19 @@ def thresholds_prior(sensor: SensorParams, *, width: int, height: int,
     return on, off, s, s.copy()
 
 
+_PROGRESS_PARTS = 32
+"""With a progress callback, a cycle's pixels are fitted in this many parts (each part on
+every thread), and the callback told after each."""
+
+
 def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int,
          priors: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
          g_prior: np.ndarray | None, sg_prior: np.ndarray | None, fixed: bool,
-         min_events: int = 2, start_sigma: float = 0.0) -> tuple[np.ndarray, ...]:
-    con, coff, scon, scoff = priors
+         min_events: int = 2, start_sigma: float = 0.0,
+         progress: Callable[[int], None] | None = None) -> tuple[np.ndarray, ...]:
+    """Every pixel's fit (:func:`_estimate_kernel`); ``progress(pixels_done)`` after each
+    of :data:`_PROGRESS_PARTS` parts when given (the same fits, part by part)."""
+    con, coff, scon, scoff = (np.ascontiguousarray(a) for a in priors)
     counts = np.diff(off)
     out_g = np.empty(npx)
     out_sd = np.empty(npx)
@@ -1374,16 +1382,20 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
                                                                       dtype=np.float64)
     tq2 = model.jitter_us ** 2 + model.res_us ** 2 / 12.0
     eq2 = model.res_us ** 2 / 12.0 + (model.jitter_us ** 2 if model.dead else 0.0)
-    _estimate_kernel(off, t, p, model.mode, model.dead, model.reset_sigma ** 2, tq2, eq2,
-                     model.noise_rate_per_us, model.exact, model.v0[0], model.v0[1],
-                     model.rows, model.g0, model.dlog, model.locate,
-                     np.int64(model.window_us), model.g_lo, model.g_hi, model.net_g,
-                     model.net_v, np.int64(1 if fixed else min_events),
-                     np.ascontiguousarray(con), np.ascontiguousarray(coff),
-                     np.ascontiguousarray(scon), np.ascontiguousarray(scoff), gp, sp, fixed,
-                     out_g, out_sd, out_con, out_coff, out_flag, float(start_sigma),
-                     np.int64(model.split_us), model.net_v2, np.int64(model.split2_us),
-                     block_order(npx, _BLOCK))
+    parts = 1 if progress is None else min(_PROGRESS_PARTS, max(1, npx // _BLOCK))
+    edges = np.linspace(0, npx, parts + 1).astype(np.int64)
+    for a, b in zip(edges[:-1].tolist(), edges[1:].tolist(), strict=True):
+        _estimate_kernel(off[a:b + 1], t, p, model.mode, model.dead, model.reset_sigma ** 2,
+                         tq2, eq2, model.noise_rate_per_us, model.exact, model.v0[0],
+                         model.v0[1], model.rows, model.g0, model.dlog, model.locate,
+                         np.int64(model.window_us), model.g_lo, model.g_hi, model.net_g,
+                         model.net_v, np.int64(1 if fixed else min_events), con[a:b],
+                         coff[a:b], scon[a:b], scoff[a:b], gp[a:b], sp[a:b], fixed,
+                         out_g[a:b], out_sd[a:b], out_con[a:b], out_coff[a:b],
+                         out_flag[a:b], float(start_sigma), np.int64(model.split_us),
+                         model.net_v2, np.int64(model.split2_us), block_order(b - a, _BLOCK))
+        if progress is not None:
+            progress(b)
     return out_g, out_sd, out_con, out_coff, out_flag, counts
 
 
@@ -1400,6 +1412,7 @@ def estimate(
     min_events: int = 2,
     start_sigma: float = 0.0,
     progress: Callable[[int, int], None] | None = None,
+    pixel_progress: Callable[[int, int], None] | None = None,
 ) -> MlResult:
     """Maximum-likelihood radiance per pixel and cycle.
 
@@ -1416,6 +1429,8 @@ def estimate(
     g_prior, g_prior_sigma : optional Gaussian prior on ``ln L`` per pixel (flat): a known
         flat field for calibration (then the thresholds are what is estimated).
     progress : ``progress(done_cycles, n_cycles)``.
+    pixel_progress : ``pixel_progress(done, total)`` in pixel-cycles, several times a
+        cycle (a 1280x720 cycle of the IMX636 takes about half a minute).
     """
     starts = np.asarray(starts_us, dtype=np.int64)
     npx = width * height
@@ -1430,8 +1445,13 @@ def estimate(
     for c in range(n):
         off, t, p = group_by_pixel(events, width=width, height=height,
                                    start_us=int(starts[c]), window_us=model.window_us)
+        step = None
+        if pixel_progress is not None:
+            def step(done: int, c: int = c) -> None:
+                pixel_progress(c * npx + done, n * npx)
         g, s, c1, c2, fl, counts = _run(model, off, t, p, npx, priors, g_prior,
-                                        g_prior_sigma, False, min_events, start_sigma)
+                                        g_prior_sigma, False, min_events, start_sigma,
+                                        progress=step)
         with np.errstate(over="ignore"):
             r = np.exp(g)  # a pixel out of the range keeps the bound it reached
         r[(fl == FLAG_NO_EVENTS) | (fl == FLAG_UNINFORMED)] = np.nan
@@ -1544,6 +1564,7 @@ def reconstruct_ml(
     out: dict[str, Any] | None = None,
     min_events: int | None = None,
     settled_start: bool = False,
+    progress: Callable[[str, int, int], None] | None = None,
 ) -> np.ndarray:
     """``ml`` on a recording: float32 radiance ``(n_cycles, height, width)`` in the unit of
     ``L_const``, NaN where a pixel has no information.
@@ -1558,6 +1579,8 @@ def reconstruct_ml(
     and ``n_events`` (:class:`MlResult`'s fields). ``settled_start``: the pixels start the
     window at rest on their reference (a single ramp from a closed shutter): the start
     offset is then known to the reset noise (or 0.02) and one event suffices.
+    ``progress(stage, done, total)`` reports the fits as they go, in pixel-cycles
+    (``stage``: "ml: pixels fitted", or "ml: pixels this cycle" for a single window).
     """
     import dataclasses
 
@@ -1581,9 +1604,13 @@ def reconstruct_ml(
         priors = thresholds_prior(sensor, width=w, height=h)
     ev, _ = sort_events(rec.events)
     start_sigma = max(sensor.reset_noise_sigma, 0.02) if settled_start else 0.0
+    # one cycle at a time (the CLI): its bar starts again with each cycle
+    stage = "ml: pixels fitted" if len(windows.start_us) > 1 else "ml: pixels this cycle"
     n_min = (1 if settled_start else 2) if min_events is None else int(min_events)
     res = estimate(ev, width=w, height=h, starts_us=windows.start_us, model=model,
-                   priors=priors, min_events=n_min, start_sigma=start_sigma)
+                   priors=priors, min_events=n_min, start_sigma=start_sigma,
+                   pixel_progress=None if progress is None else
+                   (lambda done, total: progress(stage, done, total)))
     if defects is not None:
         dead = np.asarray(defects, dtype=bool)
         if dead.shape != (h, w):

@@ -140,8 +140,12 @@ def reconstruct(
             common: dict[str, Any] = dict(method=method, k=k, threshold_on=threshold_on,
                                           threshold_off=threshold_off, rig=mlo.rig,
                                           ml_options=opts)
+            serial = dict(common)
+            if opts is not None and scheduler is None:
+                # the fits' progress within each cycle (a callback stays on this machine)
+                serial["ml_options"] = dict(opts, progress=update)
             plan = reconstruct_cycles(src, cmap=cm, window_us=window_us, period_us=period_us,
-                                      single=single, progress=update, **common)
+                                      single=single, progress=update, **serial)
             unit = mlo.unit or plan.metadata.get("radiance_unit", "relative")
             warm = plan.windows.warmup
             colour = bool(plan.metadata.get("cfa")) and demosaic != "none"
