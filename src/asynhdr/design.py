@@ -369,8 +369,9 @@ def predict(rig: Rig, sensor: SensorParams, *, levels: np.ndarray, pixels: int =
         idx = np.r_[0:n_lv, lo:hi]
         pri_s = thresholds_prior(sensor, width=w, height=hh, c_on=c_on[idx], c_off=c_off[idx],
                                  sigma=0.002)
+        # each row one level, their medians compared: no neighbours' starts
         res = estimate(delayed, width=w, height=hh, starts_us=np.array([start]), model=model,
-                       priors=pri_s)
+                       priors=pri_s, neighbours=False)
         err = np.log(res.radiance[0][:n_lv].astype(np.float64)) - np.log(scene[:n_lv])
         with np.errstate(invalid="ignore"):
             b = np.where(np.isfinite(err).all(axis=1), np.median(err, axis=1), np.nan)

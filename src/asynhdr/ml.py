@@ -131,7 +131,7 @@ _SD_RESCUE = 0.2
 _VAR_INFORMED = 1.0
 _OUTLIER_Z2 = 16.0
 _DENSITY_FLOOR = 1e-300
-_THRESHOLD_Z = 4.0
+_THRESHOLD_Z = 2.5
 _SCAN_STEP = 0.2
 
 
@@ -891,31 +891,17 @@ def _preferred(obj, var, best_obj, best_var):
 
 
 @nb.njit(cache=True, error_model="numpy")
-def _profile_scan(a0, step, n_g, mode, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, exact,
-                  v0a, v0b, rows, g0, dlog, locate, wmax, uu, first_var, s1, s2, skip,
-                  skip2, work):
-    """The ``g`` of ``a0 + i step`` (``i < n_g``) where the profile objective is least: the
-    chi-square of :func:`_normal`'s equations (plain least squares, ``u`` at ``uu`` with
-    ``first_var`` added to its equations' variance) less what the thresholds gain by moving
-    to their best values under their priors, ``b_c^T H_c^-1 b_c`` (exact, the residuals
-    being linear in the thresholds). One pass over the events for every ``g`` at once:
-    only a residual's value and variance depend on ``g``, and the tables' rows of one time
-    are read together. ``work`` holds at least ``(n_g, 10)``."""
-    nr = rows.shape[1]
-    for q in range(n_g):
-        jq, wq, eq = _at_g(mode, a0 + q * step, g0, dlog, nr)
-        vs, _, _ = _eval(mode, jq, wq, eq, -1, False, exact, v0a, v0b, rows, dlog, locate)
-        work[q, 0] = jq
-        work[q, 1] = wq
-        work[q, 2] = eq
-        work[q, 3] = vs  # the level the walk starts from (no dead time)
-        for c in range(4, 10):
-            work[q, c] = 0.0  # chi2, H_c (on-on, off-on, off-off), b_c (on, off)
+def _scan_pass(robust, n_g, mode, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam,
+               exact, v0a, v0b, rows, dlog, locate, wmax, uu, first_var, skip, skip2, work):
+    """One pass of :func:`_profile_scan` over the events for every ``g`` of ``work``: the
+    least-squares sums (columns 4 to 9) or, ``robust``, the events' ``-2 sum ln(f_i +
+    lam)`` at the thresholds moved by columns 10 and 11 (into column 12)."""
     n_on = 0.0
     n_off = 0.0
     prev = -1
     k_ev = 0
     has_u = 1.0
+    lam_nll = max(lam, 0.0)
     for i in range(lo, hi):
         m = t[i]
         if m >= wmax:
@@ -967,30 +953,73 @@ def _profile_scan(a0, step, n_g, mode, con, coff, t, p, lo, hi, dead, sr2, tq2, 
             if var < 1e-12:
                 var = 1e-12
             w = 1.0 / var
-            wr = w * r
-            work[q, 4] += wr * r
-            work[q, 5] += w * j2 * j2
-            work[q, 6] += w * j3 * j2
-            work[q, 7] += w * j3 * j3
-            work[q, 8] -= wr * j2
-            work[q, 9] -= wr * j3
+            if robust:
+                r += j2 * work[q, 10] + j3 * work[q, 11]
+                f = math.exp(-0.5 * r * r * w) * abs(dtc) * math.sqrt(w) * 0.3989422804014327
+                work[q, 12] -= 2.0 * math.log(max(f + lam_nll, _DENSITY_FLOOR))
+            else:
+                wr = w * r
+                work[q, 4] += wr * r
+                work[q, 5] += w * j2 * j2
+                work[q, 6] += w * j3 * j2
+                work[q, 7] += w * j3 * j3
+                work[q, 8] -= wr * j2
+                work[q, 9] -= wr * j3
         if dead:
             prev = m
-    best = np.inf
-    g_best = a0
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _profile_scan(a0, step, n_g, mode, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam,
+                  exact, v0a, v0b, rows, g0, dlog, locate, wmax, uu, first_var, s1, s2, skip,
+                  skip2, work):
+    """The ``g`` of ``a0 + i step`` (``i < n_g``) where the profile objective is least:
+    the likelihood of the event *times* (:func:`_fit_nll`'s ``-2 sum ln(f_i + lambda)``,
+    each event's signal density plus the background's, and the thresholds' prior) at the
+    thresholds that least squares puts at their best for that ``g`` (in closed form, the
+    residuals being linear in the thresholds; ``u`` at ``uu``, ``first_var`` added to the
+    variance of its equations). The residuals alone would prefer a slow signal with
+    thresholds near zero, whose level passes near every event's at unlikely times, and
+    take a background event at its full square. Two passes over the events for every
+    ``g`` at once (only a residual's value and variance depend on ``g``, and the tables'
+    rows of one time are read together): the least-squares sums, then the likelihood.
+    ``work`` holds at least ``(n_g, 13)``."""
+    nr = rows.shape[1]
+    for q in range(n_g):
+        jq, wq, eq = _at_g(mode, a0 + q * step, g0, dlog, nr)
+        vs, _, _ = _eval(mode, jq, wq, eq, -1, False, exact, v0a, v0b, rows, dlog, locate)
+        work[q, 0] = jq
+        work[q, 1] = wq
+        work[q, 2] = eq
+        work[q, 3] = vs  # the level the walk starts from (no dead time)
+        for c in range(4, 13):
+            work[q, c] = 0.0  # chi2, H_c (on-on, off-on, off-off), b_c (on, off), d_c, nll
+    _scan_pass(False, n_g, mode, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exact,
+               v0a, v0b, rows, dlog, locate, wmax, uu, first_var, skip, skip2, work)
     p1 = 1.0 / (s1 * s1)
     p2 = 1.0 / (s2 * s2)
     for q in range(n_g):
+        jq, wq, eq = _at_g(mode, a0 + q * step, g0, dlog, nr)
+        vs, _, _ = _eval(mode, jq, wq, eq, -1, False, exact, v0a, v0b, rows, dlog, locate)
+        work[q, 3] = vs
         h22 = work[q, 5] + p1
         h32 = work[q, 6]
         h33 = work[q, 7] + p2
         b2 = work[q, 8]
         b3 = work[q, 9]
         det = h22 * h33 - h32 * h32
-        gain = (h33 * b2 * b2 - 2.0 * h32 * b2 * b3 + h22 * b3 * b3) / det if det > 0.0 else 0.0
-        cs = work[q, 4] - gain
-        if cs < best:
-            best = cs
+        d2 = (h33 * b2 - h32 * b3) / det if det > 0.0 else 0.0
+        d3 = (h22 * b3 - h32 * b2) / det if det > 0.0 else 0.0
+        work[q, 10] = d2
+        work[q, 11] = d3
+        work[q, 12] = d2 * d2 * p1 + d3 * d3 * p2
+    _scan_pass(True, n_g, mode, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exact,
+               v0a, v0b, rows, dlog, locate, wmax, uu, first_var, skip, skip2, work)
+    best = np.inf
+    g_best = a0
+    for q in range(n_g):
+        if work[q, 12] < best:
+            best = work[q, 12]
             g_best = a0 + q * step
     return g_best
 
@@ -1051,7 +1080,7 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
                dlog, locate, wmax, g_lo, g_hi, net_g, net_v, c1, c2, s1, s2, gp, sgp,
                fixed, h, bvec, x, lmat, wy, wz, out, u_sd, stat, res, scan, split, st_o,
                net_v2, split2, saved):
-    """One pixel (module docstring). Writes ``(g, sd, c_on, c_off, flag)`` into ``out``.
+    """One pixel (module docstring). Writes ``(g, sd, c_on, c_off, flag, u)`` into ``out``.
     ``u_sd > 0``: the pixel starts settled at its reference (``u ~ N(0, u_sd^2)``).
     ``stat`` (5), ``st_o`` (5), ``res`` (6), ``saved`` (11) and ``scan``
     (:func:`_profile_scan`) are work space.
@@ -1076,11 +1105,13 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
         out[2] = c1
         out[3] = c2
         out[4] = 0.0
+        out[5] = mu_u
         return
     best_g = np.nan
     best_v = np.nan
     best_c1 = c1
     best_c2 = c2
+    best_u = mu_u
     best_obj = np.inf
     n = hi - lo
     # typed int64 from the start: literals would compile every callee once more
@@ -1154,7 +1185,7 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
                 a1 = g_hi if level == 0 else min(g_hi, gbest + 2.0 * _SCAN_STEP)
                 n_g = min(int((a1 - a0) / step + 1e-9) + 1, scan.shape[0])
                 gbest = _profile_scan(a0, step, n_g, mode, c1, c2, t, p, lo, hi, dead, sr2,
-                                      tq2, eq2, exact, v0a, v0b, rows, g0, dlog, locate,
+                                      tq2, eq2, lam, exact, v0a, v0b, rows, g0, dlog, locate,
                                       wmax, mu_u, su * su, s1, s2, skip, skip2, scan)
             _fit_from(gbest, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
                       rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp,
@@ -1194,6 +1225,7 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
             best_v = res[1]
             best_c1 = res[3]
             best_c2 = res[4]
+            best_u = res[2]
         if (attempt > 0 and attempt == n_try - 1 and not collapsed and skip >= 0 and skip2 < 0
                 and improved and stat[0] >= _OUTLIER_Z2 and stat[1] >= 0 and n >= 5):
             # a second background event in the same cycle
@@ -1210,13 +1242,14 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
     out[2] = best_c1
     out[3] = best_c2
     out[4] = flag
+    out[5] = best_u
 
 
 @nb.njit(cache=True, parallel=True, error_model="numpy")
 def _estimate_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
                      dlog, locate, wmax, g_lo, g_hi, net_g, net_v, min_events, con0,
                      coff0, scon, scoff, g_prior, sg_prior, fixed, out_g, out_sd, out_con,
-                     out_coff, out_flag, u_sd, split, net_v2, split2, order):
+                     out_coff, out_flag, u_sd, split, net_v2, split2, order, out_u):
     """Fit every pixel (module docstring), in blocks of ``_BLOCK``, taken in the order
     ``order`` (:func:`asynhdr._pool.block_order`). ``fixed``: evaluate the information at
     ``g_prior`` with no fit (the bound); ``sg_prior > 0``: a Gaussian prior on ``g``."""
@@ -1230,12 +1263,12 @@ def _estimate_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
         lmat = np.zeros((4, 4))
         wy = np.zeros(4)
         wz = np.zeros(4)
-        res = np.zeros(5)
+        res = np.zeros(6)
         stat = np.zeros(5)
         st_o = np.zeros(5)
         saved = np.zeros(11)
         work = np.zeros(6)
-        scan = np.zeros((int((g_hi - g_lo) / (2.0 * _SCAN_STEP)) + 2, 10))
+        scan = np.zeros((int((g_hi - g_lo) / (2.0 * _SCAN_STEP)) + 2, 13))
         for px in range(blk * _BLOCK, min(npx, (blk + 1) * _BLOCK)):
             lo = off[px]
             hi = off[px + 1]
@@ -1256,6 +1289,125 @@ def _estimate_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
             out_con[px] = res[2]
             out_coff[px] = res[3]
             out_flag[px] = np.uint8(res[4])
+            out_u[px] = res[5]
+
+
+
+_NEIGHBOUR_GAP = 0.5
+"""A pixel whose ``ln L`` lies further than this from the median of its neighbours' is
+fitted again from that median (:func:`_neighbour_starts`)."""
+_NEIGHBOUR_SPREAD = 0.5
+"""... when its neighbours agree: their median absolute deviation from their median in
+``ln L`` at most this (a textured or random neighbourhood offers no start)."""
+_NEIGHBOUR_SWEEPS = 3
+
+
+@nb.njit(cache=True, parallel=True, error_model="numpy")
+def _neighbour_starts(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
+                      dlog, locate, wmax, g_lo, g_hi, con0, coff0, scon, scoff, u_sd, width,
+                      min_events, todo, out_g, out_sd, out_con, out_coff, out_flag, out_u,
+                      moved):
+    """The neighbours' fits as further starts (the propagation of PatchMatch): a listed
+    pixel (``todo``) whose ``g`` lies more than :data:`_NEIGHBOUR_GAP` from the median of
+    its 8 neighbours' informed fits, these agreeing (:data:`_NEIGHBOUR_SPREAD`), or whose
+    own fit is uninformed or at a bound, is fitted again from that median; the new fit
+    replaces the old when its events' likelihood is higher (:func:`_fit_nll`, priors
+    included; :func:`_preferred`). A start is all a neighbour gives: the pixel's estimate
+    remains its own events' best fit, never a blend. Reads the fits as they stood (so the
+    result does not depend on the order of the pixels); ``moved[px]`` is set where a fit
+    was replaced. Returns how many."""
+    npx = off.shape[0] - 1
+    height = npx // width
+    g_in = out_g.copy()
+    fl_in = out_flag.copy()
+    n_moved = np.zeros(height, np.int64)
+    for y in nb.prange(height):
+        h = np.zeros((4, 4))
+        bvec = np.zeros(4)
+        x = np.zeros(4)
+        lmat = np.zeros((4, 4))
+        wy = np.zeros(4)
+        wz = np.zeros(4)
+        stat = np.zeros(5)
+        st_o = np.zeros(5)
+        res = np.zeros(6)
+        own = np.zeros(6)
+        ng = np.zeros(8)
+        dev = np.zeros(8)
+        none = np.int64(-1)
+        for xx in range(width):
+            px = y * width + xx
+            lo = off[px]
+            hi = off[px + 1]
+            if todo[px] == 0 or hi - lo < min_events:
+                continue
+            k = 0
+            for dy in range(-1, 2):
+                for dx in range(-1, 2):
+                    yy = y + dy
+                    x2 = xx + dx
+                    if (dy == 0 and dx == 0) or yy < 0 or yy >= height or x2 < 0 \
+                            or x2 >= width:
+                        continue
+                    q = yy * width + x2
+                    if fl_in[q] == 0:
+                        ng[k] = g_in[q]
+                        k += 1
+            if k < 3:
+                continue
+            med = np.median(ng[:k])
+            for j in range(k):
+                dev[j] = abs(ng[j] - med)
+            if np.median(dev[:k]) > _NEIGHBOUR_SPREAD:
+                continue
+            gi = g_in[px]
+            if fl_in[px] == 0 and abs(gi - med) <= _NEIGHBOUR_GAP:
+                continue
+            c1 = con0[px]
+            c2 = coff0[px]
+            s1 = max(scon[px], 1e-6)
+            s2 = max(scoff[px], 1e-6)
+            su = (c1 + c2) / math.sqrt(12.0)
+            mu_u = 0.5 * (c2 - c1)
+            if u_sd > 0.0:
+                su = u_sd
+                mu_u = 0.0
+            own_var = np.inf
+            own_obj = np.inf
+            if gi == gi:
+                own[0] = gi
+                own[2] = out_u[px]
+                own[3] = out_con[px]
+                own[4] = out_coff[px]
+                sd = out_sd[px]
+                if sd == sd:
+                    own_var = sd * sd
+                own_obj = _fit_nll(own, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact,
+                                   v0a, v0b, rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su,
+                                   mu_u, none, none, h, bvec, st_o)
+            _fit_from(med, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
+                      g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, 0.0, 0.0,
+                      none, none, h, bvec, x, lmat, wy, wz, stat, res, st_o)
+            obj = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
+                           rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su, mu_u, none, none,
+                           h, bvec, st_o)
+            if not _preferred(obj, res[1], own_obj, own_var):
+                continue
+            gb = res[0]
+            out_g[px] = gb
+            out_sd[px] = math.sqrt(res[1]) if res[1] == res[1] and res[1] >= 0.0 else np.nan
+            out_con[px] = res[3]
+            out_coff[px] = res[4]
+            out_u[px] = res[2]
+            flag = 0
+            if gb <= g_lo + 1e-9 or gb >= g_hi - 1e-9:
+                flag = 2
+            elif not res[1] < _VAR_INFORMED:
+                flag = 4
+            out_flag[px] = flag
+            moved[px] = 1
+            n_moved[y] += 1
+    return n_moved.sum()
 
 
 # ----------------------------------------------------------------------------- grouping
@@ -1367,9 +1519,12 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
          priors: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
          g_prior: np.ndarray | None, sg_prior: np.ndarray | None, fixed: bool,
          min_events: int = 2, start_sigma: float = 0.0,
-         progress: Callable[[int], None] | None = None) -> tuple[np.ndarray, ...]:
+         progress: Callable[[int], None] | None = None,
+         width: int = 0) -> tuple[np.ndarray, ...]:
     """Every pixel's fit (:func:`_estimate_kernel`); ``progress(pixels_done)`` after each
-    of :data:`_PROGRESS_PARTS` parts when given (the same fits, part by part)."""
+    of :data:`_PROGRESS_PARTS` parts when given (the same fits, part by part). With
+    ``width`` (the pixels an image of that width), the neighbours' fits are tried as
+    further starts (:func:`_neighbour_starts`), unless ``g`` has a prior or ``fixed``."""
     con, coff, scon, scoff = (np.ascontiguousarray(a) for a in priors)
     counts = np.diff(off)
     out_g = np.empty(npx)
@@ -1377,6 +1532,7 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
     out_con = np.empty(npx)
     out_coff = np.empty(npx)
     out_flag = np.zeros(npx, np.uint8)
+    out_u = np.zeros(npx)
     gp = np.zeros(npx) if g_prior is None else np.ascontiguousarray(g_prior, dtype=np.float64)
     sp = np.zeros(npx) if sg_prior is None else np.ascontiguousarray(sg_prior,
                                                                       dtype=np.float64)
@@ -1393,9 +1549,32 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
                          coff[a:b], scon[a:b], scoff[a:b], gp[a:b], sp[a:b], fixed,
                          out_g[a:b], out_sd[a:b], out_con[a:b], out_coff[a:b],
                          out_flag[a:b], float(start_sigma), np.int64(model.split_us),
-                         model.net_v2, np.int64(model.split2_us), block_order(b - a, _BLOCK))
+                         model.net_v2, np.int64(model.split2_us), block_order(b - a, _BLOCK),
+                         out_u[a:b])
         if progress is not None:
             progress(b)
+    if width > 0 and not fixed and not np.any(sp > 0.0) and npx % width == 0:
+        todo = np.ones(npx, np.uint8)
+        for _ in range(_NEIGHBOUR_SWEEPS):
+            moved = np.zeros(npx, np.uint8)
+            n_moved = _neighbour_starts(
+                off, t, p, model.mode, model.dead, model.reset_sigma ** 2, tq2, eq2,
+                model.noise_rate_per_us, model.exact, model.v0[0], model.v0[1], model.rows,
+                model.g0, model.dlog, model.locate, np.int64(model.window_us), model.g_lo,
+                model.g_hi, con, coff, scon, scoff, float(start_sigma), np.int64(width),
+                np.int64(min_events), todo, out_g, out_sd, out_con, out_coff, out_flag, out_u,
+                moved)
+            logger.debug("ml: %d pixels refitted from their neighbours' fits", n_moved)
+            if n_moved == 0:
+                break
+            # the next sweep: the neighbours of what moved
+            m = np.pad(moved.reshape(-1, width), 1)
+            todo = np.zeros_like(m[1:-1, 1:-1])
+            for dy in range(3):
+                for dx in range(3):
+                    np.maximum(todo, m[dy:dy + m.shape[0] - 2, dx:dx + m.shape[1] - 2],
+                               out=todo)
+            todo = todo.ravel()
     return out_g, out_sd, out_con, out_coff, out_flag, counts
 
 
@@ -1413,6 +1592,7 @@ def estimate(
     start_sigma: float = 0.0,
     progress: Callable[[int, int], None] | None = None,
     pixel_progress: Callable[[int, int], None] | None = None,
+    neighbours: bool = True,
 ) -> MlResult:
     """Maximum-likelihood radiance per pixel and cycle.
 
@@ -1431,6 +1611,9 @@ def estimate(
     progress : ``progress(done_cycles, n_cycles)``.
     pixel_progress : ``pixel_progress(done, total)`` in pixel-cycles, several times a
         cycle (a 1280x720 cycle of the IMX636 takes about half a minute).
+    neighbours : try the neighbours' fits as further starts where a pixel's fit stands
+        apart from theirs, keeping the likelier (docs/ml.md; not with ``g_prior_sigma``).
+        A fit's start, not a smoothing: each pixel's estimate is its own events' fit.
     """
     starts = np.asarray(starts_us, dtype=np.int64)
     npx = width * height
@@ -1451,7 +1634,7 @@ def estimate(
                 pixel_progress(c * npx + done, n * npx)
         g, s, c1, c2, fl, counts = _run(model, off, t, p, npx, priors, g_prior,
                                         g_prior_sigma, False, min_events, start_sigma,
-                                        progress=step)
+                                        progress=step, width=width if neighbours else 0)
         with np.errstate(over="ignore"):
             r = np.exp(g)  # a pixel out of the range keeps the bound it reached
         r[(fl == FLAG_NO_EVENTS) | (fl == FLAG_UNINFORMED)] = np.nan
@@ -1565,6 +1748,7 @@ def reconstruct_ml(
     min_events: int | None = None,
     settled_start: bool = False,
     progress: Callable[[str, int, int], None] | None = None,
+    neighbours: bool = True,
 ) -> np.ndarray:
     """``ml`` on a recording: float32 radiance ``(n_cycles, height, width)`` in the unit of
     ``L_const``, NaN where a pixel has no information.
@@ -1581,6 +1765,7 @@ def reconstruct_ml(
     offset is then known to the reset noise (or 0.02) and one event suffices.
     ``progress(stage, done, total)`` reports the fits as they go, in pixel-cycles
     (``stage``: "ml: pixels fitted", or "ml: pixels this cycle" for a single window).
+    ``neighbours``: :func:`estimate`'s further starts from the neighbours' fits.
     """
     import dataclasses
 
@@ -1609,7 +1794,7 @@ def reconstruct_ml(
     n_min = (1 if settled_start else 2) if min_events is None else int(min_events)
     res = estimate(ev, width=w, height=h, starts_us=windows.start_us, model=model,
                    priors=priors, min_events=n_min, start_sigma=start_sigma,
-                   pixel_progress=None if progress is None else
+                   neighbours=neighbours, pixel_progress=None if progress is None else
                    (lambda done, total: progress(stage, done, total)))
     if defects is not None:
         dead = np.asarray(defects, dtype=bool)
