@@ -102,6 +102,50 @@ def test_uncalibrated_dark_pixels_find_the_likelihoods_optimum() -> None:
     assert np.all(np.isnan(err[vague])) and np.all(sd[vague] >= 1.0)
 
 
+def test_neighbours_fits_lead_stuck_pixels_to_their_own_likelier_optimum() -> None:
+    # IMX636 model, its designed rig, nominal thresholds only, a flat field at 1.35 lux:
+    # each pixel's two starts (the turns of the two round trips) put some pixels in the
+    # basin of an optimum far brighter than the truth, with a fair chi-square, while their
+    # events are far likelier at the truth. Started again from the median of their
+    # neighbours' fits, these pixels find it; the estimate stays each pixel's own fit.
+    rig = default_rig("imx636")
+    sensor = IMX636
+    w, h, lux = 40, 30, 1.35
+    rec = simulate(np.full((h, w), lux), rig=rig, sensor=sensor, n_cycles=2, rng=2,
+                   sensor_seed=2)
+    model = ml.ml_model(rig, sensor)
+    pri = ml.thresholds_prior(sensor, width=w, height=h)
+    starts = rig.cycle_starts_us(2)[1:]
+    err = {}
+    for nbr in (False, True):
+        res = ml.estimate(rec.events, width=w, height=h, starts_us=starts, model=model,
+                          priors=pri, neighbours=nbr)
+        err[nbr] = np.log(res.radiance[0].astype(np.float64)) - math.log(lux)
+        assert np.all(np.isfinite(err[nbr]))
+    alone, helped = err[False], err[True]
+    assert np.mean(np.abs(alone) > 1.0) >= 0.01  # the case exists (26 of 1,200 when written)
+    assert not np.any(np.abs(helped) > 1.0)
+    assert abs(float(np.mean(np.exp(helped))) - 1.0) < 0.05  # a patch mean, not its median
+    moved = helped != alone
+    assert np.mean(np.abs(helped[moved]) < np.abs(alone[moved])) >= 0.95
+
+
+def test_neighbours_that_disagree_offer_no_start() -> None:
+    # a random scene (every pixel its own radiance, 0.3 to 300,000 lux): the neighbours'
+    # fits agree on nothing, so no pixel is fitted again and the image is the same
+    rig = default_rig("imx636")
+    sensor = IMX636
+    w, h = 24, 16
+    scene = np.exp(np.random.default_rng(0).uniform(math.log(0.3), math.log(3e5), (h, w)))
+    rec = simulate(scene, rig=rig, sensor=sensor, n_cycles=2, rng=2, sensor_seed=2)
+    model = ml.ml_model(rig, sensor)
+    pri = ml.thresholds_prior(sensor, width=w, height=h)
+    a, b = (ml.estimate(rec.events, width=w, height=h, starts_us=rig.cycle_starts_us(2)[1:],
+                        model=model, priors=pri, neighbours=nbr).radiance
+            for nbr in (False, True))
+    assert np.array_equal(a, b, equal_nan=True)
+
+
 def test_uncalibrated_fit_keeps_its_thresholds_out_of_the_collapse() -> None:
     # IMX636 round trip, nominal thresholds only: Gauss-Newton on the residuals alone can
     # slide to a much darker L with thresholds near zero (the signal then passes close to

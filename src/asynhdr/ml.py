@@ -891,17 +891,31 @@ def _preferred(obj, var, best_obj, best_var):
 
 
 @nb.njit(cache=True, error_model="numpy")
-def _scan_pass(robust, n_g, mode, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam,
-               exact, v0a, v0b, rows, dlog, locate, wmax, uu, first_var, skip, skip2, work):
-    """One pass of :func:`_profile_scan` over the events for every ``g`` of ``work``: the
-    least-squares sums (columns 4 to 9) or, ``robust``, the events' ``-2 sum ln(f_i +
-    lam)`` at the thresholds moved by columns 10 and 11 (into column 12)."""
+def _profile_scan(a0, step, n_g, mode, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, exact,
+                  v0a, v0b, rows, g0, dlog, locate, wmax, uu, first_var, s1, s2, skip,
+                  skip2, work):
+    """The ``g`` of ``a0 + i step`` (``i < n_g``) where the profile objective is least: the
+    chi-square of :func:`_normal`'s equations (plain least squares, ``u`` at ``uu`` with
+    ``first_var`` added to its equations' variance) less what the thresholds gain by moving
+    to their best values under their priors, ``b_c^T H_c^-1 b_c`` (exact, the residuals
+    being linear in the thresholds). One pass over the events for every ``g`` at once:
+    only a residual's value and variance depend on ``g``, and the tables' rows of one time
+    are read together. ``work`` holds at least ``(n_g, 10)``."""
+    nr = rows.shape[1]
+    for q in range(n_g):
+        jq, wq, eq = _at_g(mode, a0 + q * step, g0, dlog, nr)
+        vs, _, _ = _eval(mode, jq, wq, eq, -1, False, exact, v0a, v0b, rows, dlog, locate)
+        work[q, 0] = jq
+        work[q, 1] = wq
+        work[q, 2] = eq
+        work[q, 3] = vs  # the level the walk starts from (no dead time)
+        for c in range(4, 10):
+            work[q, c] = 0.0  # chi2, H_c (on-on, off-on, off-off), b_c (on, off)
     n_on = 0.0
     n_off = 0.0
     prev = -1
     k_ev = 0
     has_u = 1.0
-    lam_nll = max(lam, 0.0)
     for i in range(lo, hi):
         m = t[i]
         if m >= wmax:
@@ -953,73 +967,30 @@ def _scan_pass(robust, n_g, mode, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, 
             if var < 1e-12:
                 var = 1e-12
             w = 1.0 / var
-            if robust:
-                r += j2 * work[q, 10] + j3 * work[q, 11]
-                f = math.exp(-0.5 * r * r * w) * abs(dtc) * math.sqrt(w) * 0.3989422804014327
-                work[q, 12] -= 2.0 * math.log(max(f + lam_nll, _DENSITY_FLOOR))
-            else:
-                wr = w * r
-                work[q, 4] += wr * r
-                work[q, 5] += w * j2 * j2
-                work[q, 6] += w * j3 * j2
-                work[q, 7] += w * j3 * j3
-                work[q, 8] -= wr * j2
-                work[q, 9] -= wr * j3
+            wr = w * r
+            work[q, 4] += wr * r
+            work[q, 5] += w * j2 * j2
+            work[q, 6] += w * j3 * j2
+            work[q, 7] += w * j3 * j3
+            work[q, 8] -= wr * j2
+            work[q, 9] -= wr * j3
         if dead:
             prev = m
-
-
-@nb.njit(cache=True, error_model="numpy")
-def _profile_scan(a0, step, n_g, mode, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam,
-                  exact, v0a, v0b, rows, g0, dlog, locate, wmax, uu, first_var, s1, s2, skip,
-                  skip2, work):
-    """The ``g`` of ``a0 + i step`` (``i < n_g``) where the profile objective is least:
-    the likelihood of the event *times* (:func:`_fit_nll`'s ``-2 sum ln(f_i + lambda)``,
-    each event's signal density plus the background's, and the thresholds' prior) at the
-    thresholds that least squares puts at their best for that ``g`` (in closed form, the
-    residuals being linear in the thresholds; ``u`` at ``uu``, ``first_var`` added to the
-    variance of its equations). The residuals alone would prefer a slow signal with
-    thresholds near zero, whose level passes near every event's at unlikely times, and
-    take a background event at its full square. Two passes over the events for every
-    ``g`` at once (only a residual's value and variance depend on ``g``, and the tables'
-    rows of one time are read together): the least-squares sums, then the likelihood.
-    ``work`` holds at least ``(n_g, 13)``."""
-    nr = rows.shape[1]
-    for q in range(n_g):
-        jq, wq, eq = _at_g(mode, a0 + q * step, g0, dlog, nr)
-        vs, _, _ = _eval(mode, jq, wq, eq, -1, False, exact, v0a, v0b, rows, dlog, locate)
-        work[q, 0] = jq
-        work[q, 1] = wq
-        work[q, 2] = eq
-        work[q, 3] = vs  # the level the walk starts from (no dead time)
-        for c in range(4, 13):
-            work[q, c] = 0.0  # chi2, H_c (on-on, off-on, off-off), b_c (on, off), d_c, nll
-    _scan_pass(False, n_g, mode, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exact,
-               v0a, v0b, rows, dlog, locate, wmax, uu, first_var, skip, skip2, work)
+    best = np.inf
+    g_best = a0
     p1 = 1.0 / (s1 * s1)
     p2 = 1.0 / (s2 * s2)
     for q in range(n_g):
-        jq, wq, eq = _at_g(mode, a0 + q * step, g0, dlog, nr)
-        vs, _, _ = _eval(mode, jq, wq, eq, -1, False, exact, v0a, v0b, rows, dlog, locate)
-        work[q, 3] = vs
         h22 = work[q, 5] + p1
         h32 = work[q, 6]
         h33 = work[q, 7] + p2
         b2 = work[q, 8]
         b3 = work[q, 9]
         det = h22 * h33 - h32 * h32
-        d2 = (h33 * b2 - h32 * b3) / det if det > 0.0 else 0.0
-        d3 = (h22 * b3 - h32 * b2) / det if det > 0.0 else 0.0
-        work[q, 10] = d2
-        work[q, 11] = d3
-        work[q, 12] = d2 * d2 * p1 + d3 * d3 * p2
-    _scan_pass(True, n_g, mode, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exact,
-               v0a, v0b, rows, dlog, locate, wmax, uu, first_var, skip, skip2, work)
-    best = np.inf
-    g_best = a0
-    for q in range(n_g):
-        if work[q, 12] < best:
-            best = work[q, 12]
+        gain = (h33 * b2 * b2 - 2.0 * h32 * b2 * b3 + h22 * b3 * b3) / det if det > 0.0 else 0.0
+        cs = work[q, 4] - gain
+        if cs < best:
+            best = cs
             g_best = a0 + q * step
     return g_best
 
@@ -1185,7 +1156,7 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
                 a1 = g_hi if level == 0 else min(g_hi, gbest + 2.0 * _SCAN_STEP)
                 n_g = min(int((a1 - a0) / step + 1e-9) + 1, scan.shape[0])
                 gbest = _profile_scan(a0, step, n_g, mode, c1, c2, t, p, lo, hi, dead, sr2,
-                                      tq2, eq2, lam, exact, v0a, v0b, rows, g0, dlog, locate,
+                                      tq2, eq2, exact, v0a, v0b, rows, g0, dlog, locate,
                                       wmax, mu_u, su * su, s1, s2, skip, skip2, scan)
             _fit_from(gbest, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
                       rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp,
@@ -1268,7 +1239,7 @@ def _estimate_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
         st_o = np.zeros(5)
         saved = np.zeros(11)
         work = np.zeros(6)
-        scan = np.zeros((int((g_hi - g_lo) / (2.0 * _SCAN_STEP)) + 2, 13))
+        scan = np.zeros((int((g_hi - g_lo) / (2.0 * _SCAN_STEP)) + 2, 10))
         for px in range(blk * _BLOCK, min(npx, (blk + 1) * _BLOCK)):
             lo = off[px]
             hi = off[px + 1]
