@@ -133,6 +133,10 @@ _OUTLIER_Z2 = 16.0
 _DENSITY_FLOOR = 1e-300
 _THRESHOLD_Z = 2.5
 _SCAN_STEP = 0.2
+_HUBER = 3.0
+"""Gauss-Newton's first phase weighs an equation more than this many standard deviations
+off as if it were at that distance: a background event's pull is bounded before the
+outlier weights (which can take a poor start's every event for background) come in."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -556,7 +560,7 @@ def _solve4(h, b, x, lmat, y, z):
 
 @nb.njit(cache=True, error_model="numpy")
 def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
-            rows, g0, dlog, locate, wmax, h, b, first_var, skip, skip2, stat, lam_nll):
+            rows, g0, dlog, locate, wmax, h, b, first_var, skip, skip2, stat, lam_nll, huber):
     """Accumulate the Gauss-Newton normal equations of the events ``lo..hi`` at
     ``theta = (g, u, c_on, c_off)`` into ``h`` and ``b`` (``b = -sum w r J``); returns
     ``chi2 = sum w r^2``. ``first_var`` is added to the variance of the equations that hold
@@ -565,7 +569,9 @@ def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exac
     a pixel without dead time restarts at its level). ``stat`` receives the largest
     ``(r / s)^2``, the index of its event, the unweighted chi-square, the number of
     events the outlier weights take for signal and, when ``lam_nll >= 0``, the events'
-    negative log-likelihood ``-2 sum ln(f_i + lam_nll)`` (:func:`_fit_nll`)."""
+    negative log-likelihood ``-2 sum ln(f_i + lam_nll)`` (:func:`_fit_nll`). ``huber > 0``:
+    an equation more than ``huber`` standard deviations off weighs as if it were at that
+    distance (Huber's weights: its pull bounded, not gone)."""
     chi2 = 0.0
     nll = 0.0
     jg, wg, eg = _at_g(mode, g, g0, dlog, rows.shape[1])
@@ -650,6 +656,10 @@ def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exac
         if z2 > z_max:
             z_max = z2
             i_max = i
+        if huber > 0.0 and z2 > huber * huber:
+            hw = huber / math.sqrt(z2)
+            w *= hw
+            jac *= hw
         if lam > 0.0 or lam_nll >= 0.0:
             sd = math.sqrt(var)
             f = math.exp(-0.5 * z2) * abs(dtc) / (sd * 2.5066282746310002)
@@ -801,22 +811,24 @@ def _start(lo, hi, t, p, mode, dead, exact, v0a, v0b, rows, g0, dlog, locate, wm
 @nb.njit(cache=True, error_model="numpy")
 def _gauss_newton(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
                   g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp,
-                  n_iter, skip, skip2, h, bvec, x, lmat, wy, wz, stat, res):
-    """Gauss-Newton from ``g``: plain least squares until converged (or half the
-    iterations), then with the outlier weights. ``res`` gets ``(g, var_g, u, c_on, c_off,
+                  n_iter, skip, skip2, h, bvec, x, lmat, wy, wz, stat, res, robust0):
+    """Gauss-Newton from ``g``: least squares with Huber's weights (:data:`_HUBER`) until
+    converged (or half the iterations), then with the outlier weights; with ``robust0``
+    the outlier weights from the first step. ``res`` gets ``(g, var_g, u, c_on, c_off,
     chi2)``; ``stat`` the last pass's largest ``z^2``, its event and the unweighted chi2."""
     uu = mu_u
     cc1 = c1
     cc2 = c2
     v00 = np.nan
     chi2 = 0.0
-    robust = lam <= 0.0
+    robust = lam <= 0.0 or robust0
     for it in range(n_iter + 1):
         h[:, :] = 0.0
         bvec[:] = 0.0
         chi2 = _normal(mode, g, uu, cc1, cc2, t, p, lo, hi, dead, sr2, tq2, eq2,
                        lam if robust else 0.0, exact, v0a, v0b, rows, g0, dlog, locate,
-                       wmax, h, bvec, 0.0, skip, skip2, stat, -1.0)
+                       wmax, h, bvec, 0.0, skip, skip2, stat, -1.0,
+                       0.0 if robust else _HUBER)
         h[1, 1] += 1.0 / (su * su)
         bvec[1] += (mu_u - uu) / (su * su)
         h[2, 2] += 1.0 / (s1 * s1)
@@ -871,7 +883,7 @@ def _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
     lam_nll = max(lam, 0.0)
     _normal(mode, res[0], res[2], res[3], res[4], t, p, lo, hi, dead, sr2, tq2, eq2, 0.0,
             exact, v0a, v0b, rows, g0, dlog, locate, wmax, h, bvec, 0.0, skip, skip2,
-            st, lam_nll)
+            st, lam_nll, 0.0)
     n_bg = (1 if skip >= 0 else 0) + (1 if skip2 >= 0 else 0)
     bg = -2.0 * math.log(max(lam_nll, _DENSITY_FLOOR)) * n_bg
     return st[4] + bg + ((res[3] - c1) / s1) ** 2 + ((res[4] - c2) / s2) ** 2 \
@@ -1015,7 +1027,7 @@ def _held_thresholds(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a
     _gauss_newton(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
                   dlog, locate, wmax, g_lo, g_hi, c1, c2, 0.1 * s1, 0.1 * s2, su, mu_u,
                   gp, sgp, np.int64(_MAX_ITER), skip, skip2, h, bvec, x, lmat, wy, wz, stat2,
-                  res2)
+                  res2, False)
     nll1 = _fit_nll(res2, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
                     rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su, mu_u, skip,
                     skip2, h, bvec, st_o)
@@ -1028,19 +1040,19 @@ def _held_thresholds(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a
     # the information at that fit with the real priors (no step)
     _gauss_newton(res2[0], lo, hi, t, p, mode, dead, sr2, tq2, eq2, 0.0, exact, v0a, v0b,
                   rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u,
-                  gp, sgp, np.int64(0), skip, skip2, h, bvec, x, lmat, wy, wz, stat2, res2)
+                  gp, sgp, np.int64(0), skip, skip2, h, bvec, x, lmat, wy, wz, stat2, res2, False)
     res[1] = res2[1]
 
 
 @nb.njit(cache=True, error_model="numpy")
 def _fit_from(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
               dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp, skip,
-              skip2, h, bvec, x, lmat, wy, wz, stat, res, st_o):
+              skip2, h, bvec, x, lmat, wy, wz, stat, res, st_o, robust0=False):
     """Gauss-Newton from ``g`` (:func:`_gauss_newton`, into ``res`` and ``stat``), guarded
     by :func:`_held_thresholds`."""
     _gauss_newton(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
                   dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp,
-                  np.int64(_MAX_ITER), skip, skip2, h, bvec, x, lmat, wy, wz, stat, res)
+                  np.int64(_MAX_ITER), skip, skip2, h, bvec, x, lmat, wy, wz, stat, res, robust0)
     _held_thresholds(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
                      g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp,
                      skip, skip2, h, bvec, x, lmat, wy, wz, stat, res, st_o)
@@ -1058,9 +1070,11 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
 
     The fit: a start (:func:`_start`), Gauss-Newton; when the fit is poor or vague, a scan
     of the profile objective (:func:`_profile_scan`) over the range, kept when better;
-    and, when background events are modelled, the same again with the worst event taken
-    for a background event, kept when its likelihood is higher (:func:`_fit_nll`: the
-    background event is priced at its own density)."""
+    and, when background events are modelled and an event lies four sigma off, the fit
+    with the outlier weights from its first step (least squares may have followed that
+    event elsewhere), then the same again with the worst event taken for a background
+    event, each kept when its likelihood is higher (:func:`_fit_nll`: the background
+    event is priced at its own density)."""
     su = (c1 + c2) / math.sqrt(12.0)
     mu_u = 0.5 * (c2 - c1)
     if u_sd > 0.0:
@@ -1070,7 +1084,7 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
         _gauss_newton(gp, lo, hi, t, p, mode, dead, sr2, tq2, eq2, 0.0, exact, v0a, v0b, rows,
                       g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp,
                       sgp, np.int64(0), np.int64(-1), np.int64(-1), h, bvec, x, lmat, wy, wz, stat,
-                      res)
+                      res, False)
         out[0] = gp
         out[1] = math.sqrt(res[1]) if res[1] == res[1] and res[1] >= 0.0 else np.nan
         out[2] = c1
@@ -1134,6 +1148,28 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
                 for c in range(5):
                     stat[c] = saved[6 + c]
             g_other = np.nan
+        if attempt == 0 and lam > 0.0 and stat[0] >= _OUTLIER_Z2:
+            # an event far off: least squares may have followed a background event to
+            # another optimum before the outlier weights came in; the fit with them from
+            # its first step, the likelier kept
+            o_a = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
+                           rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su, mu_u, skip,
+                           skip2, h, bvec, st_o)
+            for c in range(6):
+                saved[c] = res[c]
+            for c in range(5):
+                saved[6 + c] = stat[c]
+            _fit_from(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
+                      g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp,
+                      skip, skip2, h, bvec, x, lmat, wy, wz, stat, res, st_o, True)
+            o_b = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
+                           rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su, mu_u, skip,
+                           skip2, h, bvec, st_o)
+            if not _preferred(o_b, res[1], o_a, saved[1]):
+                for c in range(6):
+                    res[c] = saved[c]
+                for c in range(5):
+                    stat[c] = saved[6 + c]
         n_bg = (1 if skip >= 0 else 0) + (1 if skip2 >= 0 else 0)
         n_eq = n - n_bg
         obj = np.inf
