@@ -1165,7 +1165,9 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
             o_b = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
                            rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su, mu_u, skip,
                            skip2, h, bvec, st_o)
-            if not _preferred(o_b, res[1], o_a, saved[1]):
+            # (a fit that takes more than two events for background explains the pixel
+            # away: not what this fit is for)
+            if stat[3] < n - 2.5 or not _preferred(o_b, res[1], o_a, saved[1]):
                 for c in range(6):
                     res[c] = saved[c]
                 for c in range(5):
