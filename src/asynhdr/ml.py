@@ -1058,6 +1058,25 @@ def _fit_from(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, 
                      skip, skip2, h, bvec, x, lmat, wy, wz, stat, res, st_o)
 
 
+@nb.njit(cache=True, inline="always", error_model="numpy")
+def _workspace():
+    """A fit's work arrays: ``(h, bvec, x, lmat, wy, wz, stat, st_o)``."""
+    return (np.zeros((4, 4)), np.zeros(4), np.zeros(4), np.zeros((4, 4)), np.zeros(4),
+            np.zeros(4), np.zeros(5), np.zeros(5))
+
+
+@nb.njit(cache=True, inline="always", error_model="numpy")
+def _fit_flag(g, var, g_lo, g_hi):
+    """The flag of a fit at ``g`` with variance ``var``: :data:`FLAG_OUT_OF_RANGE` at a bound
+    of the range, :data:`FLAG_UNINFORMED` when ``var`` is not below
+    :data:`_VAR_INFORMED`, else 0."""
+    if g <= g_lo + 1e-9 or g >= g_hi - 1e-9:
+        return FLAG_OUT_OF_RANGE
+    if not var < _VAR_INFORMED:
+        return FLAG_UNINFORMED
+    return 0
+
+
 @nb.njit(cache=True, error_model="numpy")
 def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
                dlog, locate, wmax, g_lo, g_hi, net_g, net_v, c1, c2, s1, s2, gp, sgp,
@@ -1241,11 +1260,7 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
             skip2 = np.int64(stat[1])
             n_try += 1
         attempt += 1
-    flag = 0.0
-    if best_g <= g_lo + 1e-9 or best_g >= g_hi - 1e-9:
-        flag = 2.0
-    elif not best_v < _VAR_INFORMED:
-        flag = 4.0
+    flag = float(_fit_flag(best_g, best_v, g_lo, g_hi))
     out[0] = best_g
     out[1] = math.sqrt(best_v) if best_v == best_v and best_v >= 0.0 else np.nan
     out[2] = best_c1
@@ -1266,15 +1281,8 @@ def _estimate_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
     nblk = order.shape[0]
     for bi in nb.prange(nblk):
         blk = order[bi]
-        h = np.zeros((4, 4))
-        bvec = np.zeros(4)
-        x = np.zeros(4)
-        lmat = np.zeros((4, 4))
-        wy = np.zeros(4)
-        wz = np.zeros(4)
+        h, bvec, x, lmat, wy, wz, stat, st_o = _workspace()
         res = np.zeros(6)
-        stat = np.zeros(5)
-        st_o = np.zeros(5)
         saved = np.zeros(11)
         work = np.zeros(6)
         scan = np.zeros((int((g_hi - g_lo) / (2.0 * _SCAN_STEP)) + 2, 10))
@@ -1331,14 +1339,7 @@ def _neighbour_starts(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b
     fl_in = out_flag.copy()
     n_moved = np.zeros(height, np.int64)
     for y in nb.prange(height):
-        h = np.zeros((4, 4))
-        bvec = np.zeros(4)
-        x = np.zeros(4)
-        lmat = np.zeros((4, 4))
-        wy = np.zeros(4)
-        wz = np.zeros(4)
-        stat = np.zeros(5)
-        st_o = np.zeros(5)
+        h, bvec, x, lmat, wy, wz, stat, st_o = _workspace()
         res = np.zeros(6)
         own = np.zeros(6)
         ng = np.zeros(8)
@@ -1408,12 +1409,7 @@ def _neighbour_starts(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b
             out_con[px] = res[3]
             out_coff[px] = res[4]
             out_u[px] = res[2]
-            flag = 0
-            if gb <= g_lo + 1e-9 or gb >= g_hi - 1e-9:
-                flag = 2
-            elif not res[1] < _VAR_INFORMED:
-                flag = 4
-            out_flag[px] = flag
+            out_flag[px] = _fit_flag(gb, res[1], g_lo, g_hi)
             moved[px] = 1
             n_moved[y] += 1
     return n_moved.sum()
