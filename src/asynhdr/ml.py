@@ -1309,7 +1309,6 @@ def _estimate_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
             out_u[px] = res[5]
 
 
-
 _NEIGHBOUR_GAP = 0.5
 """A pixel whose ``ln L`` lies further than this from the median of its neighbours' is
 fitted again from that median (:func:`_neighbour_starts`)."""
@@ -1317,6 +1316,8 @@ _NEIGHBOUR_SPREAD = 0.5
 """... when its neighbours agree: their median absolute deviation from their median in
 ``ln L`` at most this (a textured or random neighbourhood offers no start)."""
 _NEIGHBOUR_SWEEPS = 3
+"""At most this many sweeps of :func:`_neighbour_starts`, each over the neighbours of the
+pixels the last one moved (a cluster of stuck pixels is reached from its edge inwards)."""
 
 
 @nb.njit(cache=True, parallel=True, error_model="numpy")
