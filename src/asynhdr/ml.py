@@ -811,24 +811,30 @@ def _start(lo, hi, t, p, mode, dead, exact, v0a, v0b, rows, g0, dlog, locate, wm
 @nb.njit(cache=True, error_model="numpy")
 def _gauss_newton(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
                   g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp,
-                  n_iter, skip, skip2, h, bvec, x, lmat, wy, wz, stat, res, robust0):
-    """Gauss-Newton from ``g``: least squares with Huber's weights (:data:`_HUBER`) until
-    converged (or half the iterations), then with the outlier weights; with ``robust0``
-    the outlier weights from the first step. ``res`` gets ``(g, var_g, u, c_on, c_off,
-    chi2)``; ``stat`` the last pass's largest ``z^2``, its event and the unweighted chi2."""
+                  n_iter, skip, skip2, h, bvec, x, lmat, wy, wz, stat, res, robust0,
+                  huber=_HUBER):
+    """Gauss-Newton from ``g``: least squares with Huber's weights (constant ``huber``; 0:
+    plain least squares) until converged (or half the iterations), then with the outlier
+    weights; with ``robust0`` the outlier weights from the first step. ``res`` gets ``(g,
+    var_g, u, c_on, c_off, chi2)``; ``stat`` the last pass's largest ``z^2``, its event and
+    the unweighted chi2. Returns whether Huber's weights bounded an equation's pull in the
+    first phase (without it, plain least squares takes the same steps)."""
     uu = mu_u
     cc1 = c1
     cc2 = c2
     v00 = np.nan
     chi2 = 0.0
     robust = lam <= 0.0 or robust0
+    clipped = False
     for it in range(n_iter + 1):
         h[:, :] = 0.0
         bvec[:] = 0.0
         chi2 = _normal(mode, g, uu, cc1, cc2, t, p, lo, hi, dead, sr2, tq2, eq2,
                        lam if robust else 0.0, exact, v0a, v0b, rows, g0, dlog, locate,
                        wmax, h, bvec, 0.0, skip, skip2, stat, -1.0,
-                       0.0 if robust else _HUBER)
+                       0.0 if robust else huber)
+        if not robust and huber > 0.0 and stat[0] > huber * huber:
+            clipped = True
         h[1, 1] += 1.0 / (su * su)
         bvec[1] += (mu_u - uu) / (su * su)
         h[2, 2] += 1.0 / (s1 * s1)
@@ -865,6 +871,7 @@ def _gauss_newton(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v
     res[3] = cc1
     res[4] = cc2
     res[5] = chi2
+    return clipped
 
 
 @nb.njit(cache=True, error_model="numpy")
@@ -1047,15 +1054,18 @@ def _held_thresholds(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a
 @nb.njit(cache=True, error_model="numpy")
 def _fit_from(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
               dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp, skip,
-              skip2, h, bvec, x, lmat, wy, wz, stat, res, st_o, robust0=False):
+              skip2, h, bvec, x, lmat, wy, wz, stat, res, st_o, robust0=False,
+              huber=_HUBER):
     """Gauss-Newton from ``g`` (:func:`_gauss_newton`, into ``res`` and ``stat``), guarded
-    by :func:`_held_thresholds`."""
-    _gauss_newton(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
-                  dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp,
-                  np.int64(_MAX_ITER), skip, skip2, h, bvec, x, lmat, wy, wz, stat, res, robust0)
+    by :func:`_held_thresholds`. Returns whether Huber's weights bounded a pull."""
+    clipped = _gauss_newton(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
+                            rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su,
+                            mu_u, gp, sgp, np.int64(_MAX_ITER), skip, skip2, h, bvec, x,
+                            lmat, wy, wz, stat, res, robust0, huber)
     _held_thresholds(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
                      g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp,
                      skip, skip2, h, bvec, x, lmat, wy, wz, stat, res, st_o)
+    return clipped
 
 
 @nb.njit(cache=True, inline="always", error_model="numpy")
@@ -1077,6 +1087,24 @@ def _fit_flag(g, var, g_lo, g_hi):
     return 0
 
 
+@nb.njit(cache=True, inline="always", error_model="numpy")
+def _save(res, stat, saved, at):
+    """Keep a fit (``res``, ``stat``) in ``saved[at:at + 11]``."""
+    for c in range(6):
+        saved[at + c] = res[c]
+    for c in range(5):
+        saved[at + 6 + c] = stat[c]
+
+
+@nb.njit(cache=True, inline="always", error_model="numpy")
+def _load(res, stat, saved, at):
+    """Take back the fit :func:`_save` kept at ``at``."""
+    for c in range(6):
+        res[c] = saved[at + c]
+    for c in range(5):
+        stat[c] = saved[at + 6 + c]
+
+
 @nb.njit(cache=True, error_model="numpy")
 def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
                dlog, locate, wmax, g_lo, g_hi, net_g, net_v, c1, c2, s1, s2, gp, sgp,
@@ -1084,7 +1112,7 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
                net_v2, split2, saved):
     """One pixel (module docstring). Writes ``(g, sd, c_on, c_off, flag, u)`` into ``out``.
     ``u_sd > 0``: the pixel starts settled at its reference (``u ~ N(0, u_sd^2)``).
-    ``stat`` (5), ``st_o`` (5), ``res`` (6), ``saved`` (11) and ``scan``
+    ``stat`` (5), ``st_o`` (5), ``res`` (6), ``saved`` (22) and ``scan``
     (:func:`_profile_scan`) are work space.
 
     The fit: a start (:func:`_start`), Gauss-Newton; when the fit is poor or vague, a scan
@@ -1150,22 +1178,33 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
             o_other = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
                                v0b, rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su,
                                mu_u, skip, skip2, h, bvec, st_o)
-            for c in range(6):
-                saved[c] = res[c]
-            for c in range(5):
-                saved[6 + c] = stat[c]
-        _fit_from(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
-                  dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp, skip,
-                  skip2, h, bvec, x, lmat, wy, wz, stat, res, st_o)
+            _save(res, stat, saved, 0)
+        clipped = _fit_from(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
+                            v0b, rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2,
+                            su, mu_u, gp, sgp, skip, skip2, h, bvec, x, lmat, wy, wz, stat,
+                            res, st_o)
+        if attempt == 0 and clipped and stat[3] < n - 2.5:
+            # Huber's weights bounded a pull on the way: plain least squares from the same
+            # start may reach another optimum (a good event's large residual at a poor
+            # start is bounded too); the likelier fit kept
+            o_h = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
+                           rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su, mu_u, skip,
+                           skip2, h, bvec, st_o)
+            _save(res, stat, saved, 11)
+            _fit_from(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
+                      g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp,
+                      skip, skip2, h, bvec, x, lmat, wy, wz, stat, res, st_o, False, 0.0)
+            o_p = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
+                           rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su, mu_u, skip,
+                           skip2, h, bvec, st_o)
+            if not _preferred(o_p, res[1], o_h, saved[12]):
+                _load(res, stat, saved, 11)
         if g_other == g_other:
             o_this = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
                               v0b, rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su,
                               mu_u, skip, skip2, h, bvec, st_o)
             if _preferred(o_other, saved[1], o_this, res[1]):
-                for c in range(6):
-                    res[c] = saved[c]
-                for c in range(5):
-                    stat[c] = saved[6 + c]
+                _load(res, stat, saved, 0)
             g_other = np.nan
         if attempt == 0 and lam > 0.0 and stat[0] >= _OUTLIER_Z2:
             # an event far off: least squares may have followed a background event to
@@ -1174,10 +1213,7 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
             o_a = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
                            rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su, mu_u, skip,
                            skip2, h, bvec, st_o)
-            for c in range(6):
-                saved[c] = res[c]
-            for c in range(5):
-                saved[6 + c] = stat[c]
+            _save(res, stat, saved, 0)
             _fit_from(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
                       g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp,
                       skip, skip2, h, bvec, x, lmat, wy, wz, stat, res, st_o, True)
@@ -1187,10 +1223,7 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
             # (a fit that takes more than two events for background explains the pixel
             # away: not what this fit is for)
             if stat[3] < n - 2.5 or not _preferred(o_b, res[1], o_a, saved[1]):
-                for c in range(6):
-                    res[c] = saved[c]
-                for c in range(5):
-                    stat[c] = saved[6 + c]
+                _load(res, stat, saved, 0)
         n_bg = (1 if skip >= 0 else 0) + (1 if skip2 >= 0 else 0)
         n_eq = n - n_bg
         obj = np.inf
@@ -1283,7 +1316,7 @@ def _estimate_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
         blk = order[bi]
         h, bvec, x, lmat, wy, wz, stat, st_o = _workspace()
         res = np.zeros(6)
-        saved = np.zeros(11)
+        saved = np.zeros(22)
         work = np.zeros(6)
         scan = np.zeros((int((g_hi - g_lo) / (2.0 * _SCAN_STEP)) + 2, 10))
         for px in range(blk * _BLOCK, min(npx, (blk + 1) * _BLOCK)):
