@@ -130,10 +130,23 @@ def test_neighbours_fits_lead_stuck_pixels_to_their_own_likelier_optimum() -> No
     assert np.mean(np.abs(helped[moved]) < np.abs(alone[moved])) >= 0.95
 
 
+def _one_pixel(t: list[int], p: list[int], c_on: float, c_off: float,
+               sd: float) -> ml.MlResult:
+    """``ml`` on one pixel of the IMX636 with its designed rig: its events (times from the
+    window's start) and its calibrated thresholds as the prior."""
+    ev = np.zeros(len(t), dtype=EVENT_DTYPE)
+    ev["t"] = t
+    ev["p"] = p
+    rig = default_rig("imx636")
+    model = ml.cached_model(rig, IMX636, window_us=rig.ramp_us)
+    pri = (np.array([c_on]), np.array([c_off]), np.array([sd]), np.array([sd]))
+    return ml.estimate(ev, width=1, height=1, starts_us=np.array([0]), model=model,
+                       priors=pri)
+
+
 def test_a_pull_bounded_on_the_way_does_not_keep_a_worse_optimum() -> None:
     # One pixel of the Desk scene (0.25 lux) simulated with the IMX636 and its designed
-    # rig, calibrated thresholds as the prior: its 50 events, times from the window's
-    # start. The start (the first turn's net change) says 8.2 lux. From there, least
+    # rig. The start (the first turn's net change) says 8.2 lux. From there, least
     # squares with Huber's weights bounds the pull of the events that say "darker" and
     # settles at 1.9 lux (-2 ln likelihood 708); plain least squares from the same start
     # reaches 0.32 lux (590). Where the bounded phase clipped and the fit then takes more
@@ -144,17 +157,29 @@ def test_a_pull_bounded_on_the_way_does_not_keep_a_worse_optimum() -> None:
          135782, 141331, 148280, 156029, 157382, 158345, 159203, 159914, 160649, 161264,
          161897, 162494, 163072, 163653, 164278, 164924, 165955, 167811]
     p = [-1] * 8 + [1, -1, -1] + [1] * 13 + [-1] * 10 + [1] * 15 + [-1]
-    ev = np.zeros(len(t), dtype=EVENT_DTYPE)
-    ev["t"] = t
-    ev["p"] = p
-    rig = default_rig("imx636")
-    model = ml.cached_model(rig, IMX636, window_us=rig.ramp_us)
-    sd = 0.0021567660383811408
-    pri = (np.array([0.18521524965763092]), np.array([0.2651984691619873]),
-           np.array([sd]), np.array([sd]))
-    res = ml.estimate(ev, width=1, height=1, starts_us=np.array([0]), model=model,
-                      priors=pri)
+    res = _one_pixel(t, p, 0.18521524965763092, 0.2651984691619873, 0.0021567660383811408)
     assert abs(math.log(float(res.radiance[0, 0, 0]) / 0.25)) < math.log(2.0)
+
+
+def test_a_fit_far_less_likely_does_not_win_by_its_small_deviation() -> None:
+    # One pixel of Desk's darkest corner (0.0013 lux, near the model's lower bound of
+    # 0.0011 lux) simulated as above. From the first turn's start the fit settles at
+    # 2.7 lux with a deviation of 0.03 in ln L, taking 16 of its 62 events for background
+    # (-2 ln likelihood 1066); from the second turn's, at the lower bound, where its
+    # events are far likelier (746) and say only "this dark or darker". Fits are compared
+    # by their likelihood alone: the confident fit 11 stops off is not kept.
+    t = [16579, 17729, 18919, 19924, 21187, 22401, 23746, 25237, 26967, 29193, 32208,
+         35562, 38480, 40640, 42703, 44827, 46782, 49549, 52754, 66699, 67946, 68839,
+         69718, 70482, 71159, 71836, 72521, 73205, 73917, 74674, 75683, 107569, 108571,
+         109734, 110891, 112243, 113579, 115146, 116809, 119315, 121766, 125135, 127941,
+         130582, 131965, 134024, 136228, 138575, 141102, 145835, 156058, 157438, 158491,
+         159349, 160220, 160942, 161623, 162334, 162970, 163663, 164386, 165212]
+    p = ([-1] * 19 + [1] * 12 + [-1] * 9 + [1] + [-1] * 3 + [1] + [-1] * 5 + [1] * 12)
+    res = _one_pixel(t, p, 0.2198391854763031, 0.15739542245864868, 0.002133710038975867)
+    flag = int(res.flags[0, 0, 0])
+    assert flag in (ml.FLAG_OUT_OF_RANGE, ml.FLAG_UNINFORMED)
+    if flag == ml.FLAG_OUT_OF_RANGE:
+        assert float(res.radiance[0, 0, 0]) < 0.01  # the lower bound, not the upper
 
 
 def test_neighbours_that_disagree_offer_no_start() -> None:

@@ -897,18 +897,6 @@ def _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
         + ((res[2] - mu_u) / su) ** 2
 
 
-@nb.njit(cache=True, inline="always", error_model="numpy")
-def _preferred(obj, var, best_obj, best_var):
-    """Whether a fit (objective ``obj``, variance of ``ln L`` ``var``) is to replace the
-    best so far: a fit where ``ln L`` carries information (variance below
-    :data:`_VAR_INFORMED`) wins over one on a plateau (the events explained whatever L is),
-    whatever the objectives; between two of a kind, the lower objective."""
-    informed = var < _VAR_INFORMED
-    if informed != (best_var < _VAR_INFORMED):
-        return informed
-    return obj < best_obj
-
-
 @nb.njit(cache=True, error_model="numpy")
 def _profile_scan(a0, step, n_g, mode, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, exact,
                   v0a, v0b, rows, g0, dlog, locate, wmax, uu, first_var, s1, s2, skip,
@@ -1197,13 +1185,13 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
             o_p = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
                            rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su, mu_u, skip,
                            skip2, h, bvec, st_o)
-            if not _preferred(o_p, res[1], o_h, saved[12]):
+            if not o_p < o_h:
                 _load(res, stat, saved, 11)
         if g_other == g_other:
             o_this = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
                               v0b, rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su,
                               mu_u, skip, skip2, h, bvec, st_o)
-            if _preferred(o_other, saved[1], o_this, res[1]):
+            if o_other < o_this:
                 _load(res, stat, saved, 0)
             g_other = np.nan
         if attempt == 0 and lam > 0.0 and stat[0] >= _OUTLIER_Z2:
@@ -1222,7 +1210,7 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
                            skip2, h, bvec, st_o)
             # (a fit that takes more than two events for background explains the pixel
             # away: not what this fit is for)
-            if stat[3] < n - 2.5 or not _preferred(o_b, res[1], o_a, saved[1]):
+            if stat[3] < n - 2.5 or not o_b < o_a:
                 _load(res, stat, saved, 0)
         n_bg = (1 if skip >= 0 else 0) + (1 if skip2 >= 0 else 0)
         n_eq = n - n_bg
@@ -1254,7 +1242,7 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
             obj1 = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
                             v0b, rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su, mu_u,
                             skip, skip2, h, bvec, st_o)
-            if _preferred(obj1, res[1], obj, r1):
+            if obj1 < obj:
                 obj = obj1
             else:
                 res[0], res[1], res[2], res[3], res[4], res[5] = r0, r1, r2, r3, r4, r5
@@ -1279,7 +1267,7 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
             obj = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
                            rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su, mu_u, sk,
                            sk2, h, bvec, st_o)
-        improved = best_obj == np.inf or _preferred(obj, res[1], best_obj, best_v)
+        improved = best_obj == np.inf or obj < best_obj
         if improved:
             best_obj = obj
             best_g = res[0]
@@ -1363,7 +1351,7 @@ def _neighbour_starts(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b
     its 8 neighbours' informed fits, these agreeing (:data:`_NEIGHBOUR_SPREAD`), or whose
     own fit is uninformed or at a bound, is fitted again from that median; the new fit
     replaces the old when its events' likelihood is higher (:func:`_fit_nll`, priors
-    included; :func:`_preferred`). A start is all a neighbour gives: the pixel's estimate
+    included). A start is all a neighbour gives: the pixel's estimate
     remains its own events' best fit, never a blend. Reads the fits as they stood (so the
     result does not depend on the order of the pixels); ``moved[px]`` is set where a fit
     was replaced. Returns how many."""
@@ -1416,16 +1404,12 @@ def _neighbour_starts(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b
             if u_sd > 0.0:
                 su = u_sd
                 mu_u = 0.0
-            own_var = np.inf
             own_obj = np.inf
             if gi == gi:
                 own[0] = gi
                 own[2] = out_u[px]
                 own[3] = out_con[px]
                 own[4] = out_coff[px]
-                sd = out_sd[px]
-                if sd == sd:
-                    own_var = sd * sd
                 own_obj = _fit_nll(own, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact,
                                    v0a, v0b, rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su,
                                    mu_u, none, none, h, bvec, st_o)
@@ -1435,7 +1419,7 @@ def _neighbour_starts(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b
             obj = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
                            rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su, mu_u, none, none,
                            h, bvec, st_o)
-            if not _preferred(obj, res[1], own_obj, own_var):
+            if not obj < own_obj:
                 continue
             gb = res[0]
             out_g[px] = gb
