@@ -315,22 +315,6 @@ def test_pixels_beyond_the_range_hold_its_bound_and_are_flagged() -> None:
     assert np.isfinite(out["sigma_log"][-1, 0, 2])
 
 
-def test_a_vague_fit_at_the_top_of_the_range_holds_it() -> None:
-    # A pixel of the StillLife scene at 4.5 million lux (beyond the top of the paper's rig
-    # with v2e, a million) fits the top itself when alone; in the image, a neighbour's
-    # start led it to a likelier fit at 0.83 million lux with a deviation of 1.85 in
-    # ln L, 0.19 below the top: "this bright or brighter". A hole would read as black
-    # (19 stops off in the log error); such a fit holds the top, flagged, as a saturated
-    # pixel does. The same vague fit near the bottom stays a hole (NaN reads as black).
-    lo, hi = math.log(0.05), math.log(1e6)
-    vague = 1.85**2
-    assert ml._fit_flag(hi - 0.19, vague, lo, hi) == (hi, ml.FLAG_OUT_OF_RANGE)
-    assert ml._fit_flag(hi - 2.5, vague, lo, hi) == (hi - 2.5, ml.FLAG_UNINFORMED)
-    assert ml._fit_flag(lo + 0.19, vague, lo, hi) == (lo + 0.19, ml.FLAG_UNINFORMED)
-    assert ml._fit_flag(hi - 0.19, 0.04, lo, hi) == (hi - 0.19, 0)
-    assert ml._fit_flag(hi, 0.04, lo, hi) == (hi, ml.FLAG_OUT_OF_RANGE)
-
-
 def test_reconstruct_ml_needs_rig() -> None:
     rec = simulate(np.full((2, 2), 100.0), rig=default_rig("ideal"), sensor="ideal")
     bare = Recording(events=rec.events, width=2, height=2, triggers=rec.triggers,

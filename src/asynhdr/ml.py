@@ -52,9 +52,7 @@ Pixels without events carry no information: NaN, flag :data:`FLAG_NO_EVENTS`; no
 pixels whose estimate is uncertain to a factor e or more (:data:`FLAG_UNINFORMED`). Pixels
 whose estimate reaches a bound of the model's radiance range are flagged
 :data:`FLAG_OUT_OF_RANGE` and hold the bound (brighter than the range: its top, as a
-camera's saturated pixel; darker: its bottom); so do those whose estimate is that
-uncertain and within its own deviation of the top (this bright or brighter: a hole would
-read as black). Their standard deviation is NaN. The mask
+camera's saturated pixel; darker: its bottom); their standard deviation is NaN. The mask
 (:attr:`MlResult.mask`) is False for all three. With a calibration's map of dead pixels
 (:mod:`asynhdr.defects`), :func:`reconstruct_ml` fills the dead ones from their measured
 neighbours and adds :data:`FLAG_FILLED`.
@@ -114,9 +112,8 @@ FLAG_NO_EVENTS = 1
 """Flag: the pixel fired fewer than ``min_events`` events in the window (two by default:
 the first event's reference is unknown, so one event only bounds the radiance): NaN."""
 FLAG_OUT_OF_RANGE = 2
-"""Flag: the estimate reached a bound of the model's radiance range, or is uncertain to a
-factor e or more and within its deviation of the upper bound: the pixel is at least as
-bright as the upper bound (or at most as dark as the lower), and the image holds that
+"""Flag: the estimate reached a bound of the model's radiance range: the pixel is at least
+as bright as the upper bound (or at most as dark as the lower), and the image holds that
 bound, as a saturated pixel of a camera holds its full scale; no standard deviation."""
 FLAG_UNINFORMED = 4
 """Flag: the estimate's standard deviation of ``ln L`` is 1 or more (the events fix ``L``
@@ -1068,19 +1065,14 @@ def _workspace():
 
 @nb.njit(cache=True, inline="always", error_model="numpy")
 def _fit_flag(g, var, g_lo, g_hi):
-    """What a fit at ``g`` with variance ``var`` reports: ``(g, flag)``.
-    :data:`FLAG_OUT_OF_RANGE` at a bound of the range, and also for a vague fit whose
-    deviation reaches the upper bound (the events cannot tell it from the top of the
-    range: this bright or brighter; it is held there, as a saturated pixel holds its full
-    scale, where a hole would read as black); :data:`FLAG_UNINFORMED` for other fits whose
-    ``var`` is not below :data:`_VAR_INFORMED`; else 0."""
+    """The flag of a fit at ``g`` with variance ``var``: :data:`FLAG_OUT_OF_RANGE` at a bound
+    of the range, :data:`FLAG_UNINFORMED` when ``var`` is not below
+    :data:`_VAR_INFORMED`, else 0."""
     if g <= g_lo + 1e-9 or g >= g_hi - 1e-9:
-        return g, FLAG_OUT_OF_RANGE
+        return FLAG_OUT_OF_RANGE
     if not var < _VAR_INFORMED:
-        if (g_hi - g) * (g_hi - g) < var:
-            return g_hi, FLAG_OUT_OF_RANGE
-        return g, FLAG_UNINFORMED
-    return g, 0
+        return FLAG_UNINFORMED
+    return 0
 
 
 @nb.njit(cache=True, inline="always", error_model="numpy")
@@ -1289,12 +1281,12 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
             skip2 = np.int64(stat[1])
             n_try += 1
         attempt += 1
-    best_g, flag = _fit_flag(best_g, best_v, g_lo, g_hi)
+    flag = float(_fit_flag(best_g, best_v, g_lo, g_hi))
     out[0] = best_g
     out[1] = math.sqrt(best_v) if best_v == best_v and best_v >= 0.0 else np.nan
     out[2] = best_c1
     out[3] = best_c2
-    out[4] = float(flag)
+    out[4] = flag
     out[5] = best_u
 
 
@@ -1429,13 +1421,13 @@ def _neighbour_starts(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b
                            h, bvec, st_o)
             if not obj < own_obj:
                 continue
-            gb, flag = _fit_flag(res[0], res[1], g_lo, g_hi)
+            gb = res[0]
             out_g[px] = gb
             out_sd[px] = math.sqrt(res[1]) if res[1] == res[1] and res[1] >= 0.0 else np.nan
             out_con[px] = res[3]
             out_coff[px] = res[4]
             out_u[px] = res[2]
-            out_flag[px] = flag
+            out_flag[px] = _fit_flag(gb, res[1], g_lo, g_hi)
             moved[px] = 1
             n_moved[y] += 1
     return n_moved.sum()
