@@ -1094,6 +1094,29 @@ def _load(res, stat, saved, at):
 
 
 @nb.njit(cache=True, error_model="numpy")
+def _likelier_variant(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
+                      g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp,
+                      skip, skip2, h, bvec, x, lmat, wy, wz, stat, res, st_o, saved, robust0,
+                      huber, n_bg_max):
+    """The fit in ``res`` and ``stat`` against the fit from the same start ``g`` with
+    another first phase (``robust0``, ``huber``: :func:`_gauss_newton`): the likelier
+    (:func:`_fit_nll`) is left there. With ``n_bg_max >= 0`` the other is not kept when it
+    takes more than ``n_bg_max`` events for background. ``saved[11:22]`` is work space."""
+    o_a = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
+                   g0, dlog, locate, wmax, c1, c2, s1, s2, su, mu_u, skip, skip2, h, bvec,
+                   st_o)
+    _save(res, stat, saved, 11)
+    _fit_from(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
+              dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp, skip, skip2,
+              h, bvec, x, lmat, wy, wz, stat, res, st_o, robust0, huber)
+    o_b = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
+                   g0, dlog, locate, wmax, c1, c2, s1, s2, su, mu_u, skip, skip2, h, bvec,
+                   st_o)
+    if (n_bg_max >= 0 and stat[3] < (hi - lo) - n_bg_max - 0.5) or not o_b < o_a:
+        _load(res, stat, saved, 11)
+
+
+@nb.njit(cache=True, error_model="numpy")
 def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
                dlog, locate, wmax, g_lo, g_hi, net_g, net_v, c1, c2, s1, s2, gp, sgp,
                fixed, h, bvec, x, lmat, wy, wz, out, u_sd, stat, res, scan, split, st_o,
@@ -1174,19 +1197,11 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
         if attempt == 0 and clipped and stat[3] < n - 2.5:
             # Huber's weights bounded a pull on the way: plain least squares from the same
             # start may reach another optimum (a good event's large residual at a poor
-            # start is bounded too); the likelier fit kept
-            o_h = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
-                           rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su, mu_u, skip,
-                           skip2, h, bvec, st_o)
-            _save(res, stat, saved, 11)
-            _fit_from(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
-                      g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp,
-                      skip, skip2, h, bvec, x, lmat, wy, wz, stat, res, st_o, False, 0.0)
-            o_p = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
-                           rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su, mu_u, skip,
-                           skip2, h, bvec, st_o)
-            if not o_p < o_h:
-                _load(res, stat, saved, 11)
+            # start is bounded too)
+            _likelier_variant(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
+                              v0b, rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2,
+                              su, mu_u, gp, sgp, skip, skip2, h, bvec, x, lmat, wy, wz,
+                              stat, res, st_o, saved, False, 0.0, -1)
         if g_other == g_other:
             o_this = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
                               v0b, rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su,
@@ -1197,21 +1212,12 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
         if attempt == 0 and lam > 0.0 and stat[0] >= _OUTLIER_Z2:
             # an event far off: least squares may have followed a background event to
             # another optimum before the outlier weights came in; the fit with them from
-            # its first step, the likelier kept
-            o_a = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
-                           rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su, mu_u, skip,
-                           skip2, h, bvec, st_o)
-            _save(res, stat, saved, 0)
-            _fit_from(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
-                      g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp,
-                      skip, skip2, h, bvec, x, lmat, wy, wz, stat, res, st_o, True)
-            o_b = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
-                           rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su, mu_u, skip,
-                           skip2, h, bvec, st_o)
-            # (a fit that takes more than two events for background explains the pixel
-            # away: not what this fit is for)
-            if stat[3] < n - 2.5 or not o_b < o_a:
-                _load(res, stat, saved, 0)
+            # its first step (not kept if it takes more than two events for background:
+            # it would explain the pixel away, not what this fit is for)
+            _likelier_variant(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
+                              v0b, rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2,
+                              su, mu_u, gp, sgp, skip, skip2, h, bvec, x, lmat, wy, wz,
+                              stat, res, st_o, saved, True, _HUBER, 2)
         n_bg = (1 if skip >= 0 else 0) + (1 if skip2 >= 0 else 0)
         n_eq = n - n_bg
         obj = np.inf
