@@ -315,6 +315,48 @@ def test_pixels_beyond_the_range_hold_its_bound_and_are_flagged() -> None:
     assert np.isfinite(out["sigma_log"][-1, 0, 2])
 
 
+def test_a_fit_called_vague_is_walked_down_the_likelihoods_profile() -> None:
+    # One pixel of the StillLife scene at 4.5 million lux, beyond the top (a million) of
+    # the paper's rig with v2e; thresholds from a c-map as the prior. Its 38 ON events
+    # crowd at the start of the ramp. From a start at 0.44 million lux (a neighbour's),
+    # Gauss-Newton stops at 0.83 million lux, and its matrix (which leaves out the
+    # curvature of the density's Jacobian) calls the fit vague: a hole, black, 19 stops
+    # off. The likelihood disagrees: with the thresholds and u fitted again at the same
+    # ln L its objective falls from 541 to 66, and further toward the top. Walked down
+    # the profile, the fit reaches the top: held there and flagged, as a saturated pixel.
+    t = np.array([11, 22, 36, 52, 71, 94, 122, 155, 194, 242, 298, 366, 447, 544, 661,
+                  800, 967, 1166, 1405, 1691, 2034, 2444, 2935, 3523, 4226, 5069, 6077,
+                  7285, 8730, 10460, 12532, 15012, 17981, 21536, 25791, 30886, 36985,
+                  44287], dtype=np.int32)
+    p = np.ones(t.size, dtype=np.int8)
+    rig = Rig()
+    sensor = get_preset("v2e")
+    m = ml.cached_model(rig, sensor, window_us=rig.ramp_us)
+    c, sc = 0.1783783793449402, 0.01
+    su, mu_u = 2.0 * c / math.sqrt(12.0), 0.0
+    tq2 = m.jitter_us ** 2 + m.res_us ** 2 / 12.0
+    eq2 = m.res_us ** 2 / 12.0 + (m.jitter_us ** 2 if m.dead else 0.0)
+    none = np.int64(-1)
+    lo, hi = np.int64(0), np.int64(t.size)
+    model = (m.mode, m.dead, m.reset_sigma ** 2, tq2, eq2, m.noise_rate_per_us, m.exact,
+             m.v0[0], m.v0[1], m.rows, m.g0, m.dlog, m.locate, np.int64(m.window_us))
+    h, bvec, x, lmat, wy, wz, stat, st_o = (np.zeros((4, 4)), np.zeros(4), np.zeros(4),
+                                            np.zeros((4, 4)), np.zeros(4), np.zeros(4),
+                                            np.zeros(5), np.zeros(5))
+    res = np.zeros(6)
+    ml._fit_from(13.0, lo, hi, t, p, *model, m.g_lo, m.g_hi, c, c, sc, sc, su, mu_u, 0.0,
+                 0.0, none, none, h, bvec, x, lmat, wy, wz, stat, res, st_o)
+    assert res[1] >= 1.0 and res[0] < m.g_hi - 0.1  # vague by the matrix, below the top
+    o_fit = ml._fit_nll(res, lo, hi, t, p, *model, c, c, sc, sc, su, mu_u, none, none, h,
+                        bvec, st_o)
+    ml._profile_walk(res, lo, hi, t, p, *model, m.g_lo, m.g_hi, c, c, sc, sc, su, mu_u, h,
+                     bvec, x, lmat, wy, wz, st_o)
+    assert res[0] == pytest.approx(m.g_hi)
+    assert ml._fit_nll(res, lo, hi, t, p, *model, c, c, sc, sc, su, mu_u, none, none, h,
+                       bvec, st_o) < o_fit - 100.0
+    assert ml._fit_flag(res[0], res[1], m.g_lo, m.g_hi) == ml.FLAG_OUT_OF_RANGE
+
+
 def test_reconstruct_ml_needs_rig() -> None:
     rec = simulate(np.full((2, 2), 100.0), rig=default_rig("ideal"), sensor="ideal")
     bare = Recording(events=rec.events, width=2, height=2, triggers=rec.triggers,

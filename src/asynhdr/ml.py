@@ -129,6 +129,9 @@ _BLOCK = 256
 _CHI2_RESCUE = 2.0
 _SD_RESCUE = 0.2
 _VAR_INFORMED = 1.0
+_PROFILE_STEP = 0.25
+"""Step in ``ln L`` of the likelihood's profile that checks a fit the Gauss-Newton matrix
+calls vague (:func:`_profile_walk`)."""
 _OUTLIER_Z2 = 16.0
 _DENSITY_FLOOR = 1e-300
 _THRESHOLD_Z = 2.5
@@ -1117,6 +1120,98 @@ def _likelier_variant(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0
 
 
 @nb.njit(cache=True, error_model="numpy")
+def _profile_at(ga, out, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
+                g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, h, bvec, x,
+                lmat, wy, wz, st, st_o):
+    """The likelihood's profile at ``ln L = ga``: the thresholds and ``u`` fitted with
+    ``ln L`` held (into ``out``), and its objective (:func:`_fit_nll`)."""
+    none = np.int64(-1)
+    _gauss_newton(ga, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
+                  g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, ga, 1e-6,
+                  np.int64(_MAX_ITER), none, none, h, bvec, x, lmat, wy, wz, st, out, False)
+    return _fit_nll(out, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
+                    g0, dlog, locate, wmax, c1, c2, s1, s2, su, mu_u, none, none, h, bvec,
+                    st_o)
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _profile_step(g, sgn, out, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
+                  rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, h, bvec,
+                  x, lmat, wy, wz, st, st_o):
+    """:func:`_profile_at` one :data:`_PROFILE_STEP` from ``g`` (down for ``sgn < 0``),
+    within the range: ``(ln L, objective)``, the objective infinite where ``g`` is at the
+    bound already."""
+    ga = min(max(g + sgn * _PROFILE_STEP, g_lo), g_hi)
+    if ga == g:
+        return ga, np.inf
+    return ga, _profile_at(ga, out, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
+                           v0b, rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su,
+                           mu_u, h, bvec, x, lmat, wy, wz, st, st_o)
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _profile_walk(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
+                  g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, h, bvec, x,
+                  lmat, wy, wz, st_o):
+    """A fit the Gauss-Newton matrix calls vague (``res[1] >= 1``), checked on the
+    likelihood's profile over ``ln L`` (:func:`_profile_at`, steps of
+    :data:`_PROFILE_STEP`): walked downhill to the profile's lowest point, or to a bound
+    of the range, and its variance taken from the profile's curvature there. ``res`` is
+    replaced when the profile's point is likelier. The Gauss-Newton matrix leaves out the
+    curvature of the density's Jacobian term, which can carry the information (a pixel
+    beyond the top of the range: its events crowd at the start of the ramp, and ``u``
+    and ``ln L`` are pinned by their times alone)."""
+    none = np.int64(-1)
+    o_fit = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
+                     rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su, mu_u, none, none, h,
+                     bvec, st_o)
+    # rows 0, 1, 2: the step below, the point, the step above (fit, objective, ln L)
+    buf = np.empty((3, 6))
+    o = np.full(3, np.inf)
+    gs = np.empty(3)
+    st = np.empty(5)
+    gs[1] = min(max(res[0], g_lo), g_hi)
+    o[1] = _profile_at(gs[1], buf[1], lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact,
+                       v0a, v0b, rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2,
+                       su, mu_u, h, bvec, x, lmat, wy, wz, st, st_o)
+    for j in (0, 2):
+        gs[j], o[j] = _profile_step(gs[1], j - 1, buf[j], lo, hi, t, p, mode, dead, sr2, tq2,
+                                    eq2, lam, exact, v0a, v0b, rows, g0, dlog, locate, wmax,
+                                    g_lo, g_hi, c1, c2, s1, s2, su, mu_u, h, bvec, x, lmat,
+                                    wy, wz, st, st_o)
+    j = 0 if o[0] < o[1] and o[0] <= o[2] else (2 if o[2] < o[1] else 1)
+    while j != 1:
+        # downhill, one way: the point becomes the step behind, the step the point
+        k = 2 - j
+        buf[k, :] = buf[1]
+        o[k] = o[1]
+        gs[k] = gs[1]
+        buf[1, :] = buf[j]
+        o[1] = o[j]
+        gs[1] = gs[j]
+        gs[j], o[j] = _profile_step(gs[1], j - 1, buf[j], lo, hi, t, p, mode, dead, sr2, tq2,
+                                    eq2, lam, exact, v0a, v0b, rows, g0, dlog, locate, wmax,
+                                    g_lo, g_hi, c1, c2, s1, s2, su, mu_u, h, bvec, x, lmat,
+                                    wy, wz, st, st_o)
+        if not o[j] < o[1]:
+            break
+    if not o[1] < o_fit:
+        return
+    g = gs[1]
+    for k in range(6):
+        res[k] = buf[1, k]
+    res[0] = g
+    res[1] = np.nan
+    if g_lo < g < g_hi:
+        # -2 ln L ~ (g - g_hat)^2 / var near the optimum, which the two steps bracket: the
+        # second derivative of the parabola through the three points
+        a = g - gs[0]
+        b = gs[2] - g
+        curv = 2.0 * (o[0] * b + o[2] * a - o[1] * (a + b)) / (a * b * (a + b))
+        res[1] = 2.0 / curv if curv > 0.0 and o[0] < np.inf and o[2] < np.inf else np.inf
+
+
+@nb.njit(cache=True, error_model="numpy")
 def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
                dlog, locate, wmax, g_lo, g_hi, net_g, net_v, c1, c2, s1, s2, gp, sgp,
                fixed, h, bvec, x, lmat, wy, wz, out, u_sd, stat, res, scan, split, st_o,
@@ -1287,6 +1382,16 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
             skip2 = np.int64(stat[1])
             n_try += 1
         attempt += 1
+    if not best_v < _VAR_INFORMED:
+        res[0] = best_g
+        res[1] = best_v
+        res[2] = best_u
+        res[3] = best_c1
+        res[4] = best_c2
+        _profile_walk(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
+                      rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, h,
+                      bvec, x, lmat, wy, wz, st_o)
+        best_g, best_v, best_u, best_c1, best_c2 = res[0], res[1], res[2], res[3], res[4]
     flag = float(_fit_flag(best_g, best_v, g_lo, g_hi))
     out[0] = best_g
     out[1] = math.sqrt(best_v) if best_v == best_v and best_v >= 0.0 else np.nan
@@ -1427,6 +1532,10 @@ def _neighbour_starts(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b
                            h, bvec, st_o)
             if not obj < own_obj:
                 continue
+            if not res[1] < _VAR_INFORMED:
+                _profile_walk(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
+                              v0b, rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2,
+                              su, mu_u, h, bvec, x, lmat, wy, wz, st_o)
             gb = res[0]
             out_g[px] = gb
             out_sd[px] = math.sqrt(res[1]) if res[1] == res[1] and res[1] >= 0.0 else np.nan
