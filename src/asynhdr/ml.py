@@ -1227,7 +1227,8 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
     with the outlier weights from its first step (least squares may have followed that
     event elsewhere), then the same again with the worst event taken for a background
     event, each kept when its likelihood is higher (:func:`_fit_nll`: the background
-    event is priced at its own density)."""
+    event is priced at its own density). A fit left vague is checked on the likelihood's
+    profile (:func:`_profile_walk`)."""
     su = (c1 + c2) / math.sqrt(12.0)
     mu_u = 0.5 * (c2 - c1)
     if u_sd > 0.0:
