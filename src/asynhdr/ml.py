@@ -1211,6 +1211,30 @@ def _profile_walk(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
         res[1] = 2.0 / curv if curv > 0.0 and o[0] < np.inf and o[2] < np.inf else np.inf
 
 
+@nb.njit(cache=True, inline="always", error_model="numpy")
+def _u_prior(c1, c2, u_sd):
+    """The prior of the start offset ``u``: ``(sd, mean)``. Uniform over the band the
+    thresholds ``c1``, ``c2`` leave (its moments), or ``N(0, u_sd^2)`` for a pixel that
+    starts settled at its reference (``u_sd > 0``)."""
+    if u_sd > 0.0:
+        return u_sd, 0.0
+    return (c1 + c2) / math.sqrt(12.0), 0.5 * (c2 - c1)
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _settle(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0, dlog,
+            locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, h, bvec, x, lmat, wy, wz,
+            st_o):
+    """A pixel's chosen fit ``res`` made final: walked on the likelihood's profile when the
+    Gauss-Newton matrix calls it vague (:func:`_profile_walk`); returns its flag
+    (:func:`_fit_flag`)."""
+    if not res[1] < _VAR_INFORMED:
+        _profile_walk(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
+                      rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, h,
+                      bvec, x, lmat, wy, wz, st_o)
+    return _fit_flag(res[0], res[1], g_lo, g_hi)
+
+
 @nb.njit(cache=True, error_model="numpy")
 def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
                dlog, locate, wmax, g_lo, g_hi, net_g, net_v, c1, c2, s1, s2, gp, sgp,
@@ -1229,11 +1253,7 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
     event, each kept when its likelihood is higher (:func:`_fit_nll`: the background
     event is priced at its own density). A fit left vague is checked on the likelihood's
     profile (:func:`_profile_walk`)."""
-    su = (c1 + c2) / math.sqrt(12.0)
-    mu_u = 0.5 * (c2 - c1)
-    if u_sd > 0.0:
-        su = u_sd
-        mu_u = 0.0
+    su, mu_u = _u_prior(c1, c2, u_sd)
     if fixed:
         _gauss_newton(gp, lo, hi, t, p, mode, dead, sr2, tq2, eq2, 0.0, exact, v0a, v0b, rows,
                       g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp,
@@ -1383,23 +1403,20 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
             skip2 = np.int64(stat[1])
             n_try += 1
         attempt += 1
-    if not best_v < _VAR_INFORMED:
-        res[0] = best_g
-        res[1] = best_v
-        res[2] = best_u
-        res[3] = best_c1
-        res[4] = best_c2
-        _profile_walk(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
-                      rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, h,
-                      bvec, x, lmat, wy, wz, st_o)
-        best_g, best_v, best_u, best_c1, best_c2 = res[0], res[1], res[2], res[3], res[4]
-    flag = float(_fit_flag(best_g, best_v, g_lo, g_hi))
-    out[0] = best_g
-    out[1] = math.sqrt(best_v) if best_v == best_v and best_v >= 0.0 else np.nan
-    out[2] = best_c1
-    out[3] = best_c2
-    out[4] = flag
-    out[5] = best_u
+    res[0] = best_g
+    res[1] = best_v
+    res[2] = best_u
+    res[3] = best_c1
+    res[4] = best_c2
+    flag = _settle(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
+                   dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, h, bvec, x, lmat,
+                   wy, wz, st_o)
+    out[0] = res[0]
+    out[1] = math.sqrt(res[1]) if res[1] == res[1] and res[1] >= 0.0 else np.nan
+    out[2] = res[3]
+    out[3] = res[4]
+    out[4] = float(flag)
+    out[5] = res[2]
 
 
 @nb.njit(cache=True, parallel=True, error_model="numpy")
@@ -1511,11 +1528,7 @@ def _neighbour_starts(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b
             c2 = coff0[px]
             s1 = max(scon[px], 1e-6)
             s2 = max(scoff[px], 1e-6)
-            su = (c1 + c2) / math.sqrt(12.0)
-            mu_u = 0.5 * (c2 - c1)
-            if u_sd > 0.0:
-                su = u_sd
-                mu_u = 0.0
+            su, mu_u = _u_prior(c1, c2, u_sd)
             own_obj = np.inf
             if gi == gi:
                 own[0] = gi
@@ -1533,17 +1546,15 @@ def _neighbour_starts(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b
                            h, bvec, st_o)
             if not obj < own_obj:
                 continue
-            if not res[1] < _VAR_INFORMED:
-                _profile_walk(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
-                              v0b, rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2,
-                              su, mu_u, h, bvec, x, lmat, wy, wz, st_o)
-            gb = res[0]
-            out_g[px] = gb
+            flag = _settle(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
+                           rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u,
+                           h, bvec, x, lmat, wy, wz, st_o)
+            out_g[px] = res[0]
             out_sd[px] = math.sqrt(res[1]) if res[1] == res[1] and res[1] >= 0.0 else np.nan
             out_con[px] = res[3]
             out_coff[px] = res[4]
             out_u[px] = res[2]
-            out_flag[px] = _fit_flag(gb, res[1], g_lo, g_hi)
+            out_flag[px] = flag
             moved[px] = 1
             n_moved[y] += 1
     return n_moved.sum()
