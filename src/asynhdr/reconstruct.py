@@ -180,6 +180,12 @@ class CycleWindows:
 # --------------------------------------------------------------------------- sums
 
 
+_SUMS_CHUNK = 2048
+"""Events per chunk in :func:`_sums_kernel`: each chunk's places and weights are worked
+out first, then added in a loop of nothing else (one that keeps many of the scattered
+adds in flight at once)."""
+
+
 @nb.njit(cache=True, parallel=True, error_model="numpy")
 def _sums_kernel(x, y, p, t, starts, window_us, width, table, w_on, w_off, lo, hi, c0, row0,
                  acc, bad):
@@ -189,29 +195,43 @@ def _sums_kernel(x, y, p, t, starts, window_us, width, table, w_on, w_off, lo, h
     Events ``lo[k] .. hi[k]`` form part ``k``, summed in parallel into its own rows of
     ``acc`` (row ``row0[k] + cycle - c0[k]``), so no two threads add to one place.
     ``table`` holds the weight of every whole-µs offset in the window. ``bad[k]`` is the
-    index of the first event of part ``k`` whose time steps back, or -1.
+    index of the first event of part ``k`` whose time steps back, or -1. Within a part
+    the adds happen in event order.
     """
     ncyc = starts.shape[0]
     n_tab = table.shape[0]
+    npx = acc.shape[1]
+    flat = acc.reshape(-1)
     for k in nb.prange(lo.shape[0]):
         bad[k] = -1
+        place = np.empty(_SUMS_CHUNK, dtype=np.int64)
+        value = np.empty(_SUMS_CHUNK, dtype=np.float64)
+        sign = np.empty(2, dtype=np.float64)
+        sign[0] = -w_off
+        sign[1] = w_on
         c = c0[k]
         i0 = lo[k]
         prev = t[i0 - 1] if i0 > 0 else t[i0]
-        for i in range(i0, hi[k]):
-            ti = t[i]
-            if ti < prev:
-                bad[k] = i
+        for a in range(i0, hi[k], _SUMS_CHUNK):
+            m = 0
+            for i in range(a, min(hi[k], a + _SUMS_CHUNK)):
+                ti = t[i]
+                if ti < prev:
+                    bad[k] = i
+                    break
+                prev = ti
+                while c + 1 < ncyc and ti >= starts[c + 1]:
+                    c += 1
+                dt = ti - starts[c]
+                if dt < 0 or dt >= n_tab or dt >= window_us:
+                    continue
+                place[m] = (row0[k] + c - c0[k]) * npx + np.int64(y[i]) * width + x[i]
+                value[m] = table[dt] * sign[np.int64(p[i] > 0)]
+                m += 1
+            for q in range(m):
+                flat[place[q]] += value[q]
+            if bad[k] >= 0:
                 break
-            prev = ti
-            while c + 1 < ncyc and ti >= starts[c + 1]:
-                c += 1
-            dt = ti - starts[c]
-            if dt < 0 or dt >= n_tab or dt >= window_us:
-                continue
-            j = np.int64(y[i]) * width + x[i]
-            r = row0[k] + c - c0[k]
-            acc[r, j] += table[dt] * (w_on if p[i] > 0 else -w_off)
 
 
 def _scatter_sums(ev: np.ndarray, windows: CycleWindows, width: int, npx: int,
@@ -236,10 +256,12 @@ def _scatter_sums(ev: np.ndarray, windows: CycleWindows, width: int, npx: int,
                  table, float(w_on), float(w_off), lo, hi, c0, row0, acc, bad)
     if (bad >= 0).any():
         return acc, False
-    if parts == 1 and rows[0] == windows.n_cycles and c0[0] == 0:
-        return acc, True
-    out = np.zeros((windows.n_cycles, npx), dtype=np.float64)
-    for k in range(parts):
+    if c0[0] == 0 and rows[0] == windows.n_cycles:
+        out = acc[:rows[0]]  # the first part spans every cycle: the others add to it
+    else:
+        out = np.zeros((windows.n_cycles, npx), dtype=np.float64)
+        out[c0[0]:c1[0] + 1] += acc[:rows[0]]
+    for k in range(1, parts):
         out[c0[k]:c1[k] + 1] += acc[row0[k]:row0[k] + rows[k]]
     return out, True
 
