@@ -49,7 +49,15 @@ from asynhdr.sensor.photoreceptor import (
     row_runs,
     time_grid,
 )
-from asynhdr.sensor.pixel import CycleFiring, PixelState, cycle_pieces, fire_cycle, gather_sorted
+from asynhdr.sensor.pixel import (
+    CycleFiring,
+    PixelState,
+    cycle_pieces,
+    fire_cycle,
+    gather_sorted,
+    place_events,
+    sort_keys,
+)
 
 __all__ = ["DEFAULT_SENSOR", "ENGINES", "CycleEvents", "draw_thresholds", "finish_recording",
            "holds_pixels", "simulate", "simulate_cycles"]
@@ -307,8 +315,10 @@ class _Engine:
             saved = state.copy() if readout is not None else None
             counts, st, sp, off, lost = cyc.fire(
                 noise_q=nz.offsets[:-1].copy(), **kw)  # type: ignore[arg-type]
-            ev = gather_sorted(off, counts, st, sp, pix, width=self.width,
-                               t_first_us=t_start_us + t_lo, nbins=nbins)
+            keys = sort_keys(off, counts, st, sp, t_first_us=t_start_us + t_lo, nbins=nbins)
+            del st, sp  # the slots' memory goes back before the events array is written
+            ev = place_events(keys, pix, width=self.width)
+            del keys
             if readout is None or readout.free(ev["t"]):
                 return ev, lost
             assert saved is not None

@@ -42,6 +42,7 @@ direction the two interpolated rows do not agree on are scanned point by point.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import numba as nb
@@ -51,7 +52,8 @@ from asynhdr._pool import block_order
 from asynhdr.events import EVENT_DTYPE
 from asynhdr.sensor._rng import hash_normal2_at, hash_stream
 
-__all__ = ["CycleFiring", "PixelState", "cycle_pieces", "fire_cycle", "gather_sorted"]
+__all__ = ["CycleFiring", "PixelState", "SortKeys", "cycle_pieces", "fire_cycle", "gather_sorted",
+           "place_events", "sort_keys"]
 
 _EPS = 1e-12
 _NEVER = -1e300
@@ -921,11 +923,11 @@ _FINE_BITS = 8  # a coarse time bin holds 2**_FINE_BITS µs bins
 
 
 @nb.njit(cache=True, parallel=True, error_model="numpy")
-def _gather(offsets, counts, slot_t, slot_p, first_bin, xs, ys, t_first, nbins, keys, out):
-    """Counting sort of the slots by time bin in two cache-friendly passes: each pixel's
-    events go to their coarse bin as packed keys (listed pixel, fine bin, polarity), then each
-    coarse bin's keys go to their place in ``out``. Stable: listed-pixel order, then
-    each pixel's own order, within a time bin."""
+def _sort_keys(offsets, counts, slot_t, slot_p, first_bin, nbins, keys, start):
+    """The first half of a counting sort of the slots by time bin: each listed pixel's
+    events go to their coarse bin as packed keys (listed pixel, fine bin, polarity), in
+    listed-pixel order, then each pixel's own order; ``start[f]`` receives the first
+    output place of µs bin ``f`` (``start[-1]`` the number of events)."""
     npix = counts.shape[0]
     fb = _FINE_BITS
     fmask = (1 << fb) - 1
@@ -939,7 +941,6 @@ def _gather(offsets, counts, slot_t, slot_p, first_bin, xs, ys, t_first, nbins, 
             for k in range(counts[i]):
                 hist[b, slot_t[o + k] - first_bin] += 1
     # start of every µs bin in the output, and of every block's share of a coarse bin
-    start = np.empty((ncoarse << fb) + 1, dtype=np.int64)
     cpos = np.empty((nblk, ncoarse), dtype=np.int64)
     acc = np.int64(0)
     for c in range(ncoarse):
@@ -963,6 +964,15 @@ def _gather(offsets, counts, slot_t, slot_p, first_bin, xs, ys, t_first, nbins, 
                 d = cpos[b, cb]
                 cpos[b, cb] = d + 1
                 keys[d] = head | ((tb & fmask) << 1) | (1 if slot_p[o + k] > 0 else 0)
+
+
+@nb.njit(cache=True, parallel=True, error_model="numpy")
+def _place_keys(keys, start, xs, ys, t_first, out):
+    """The second half: each coarse bin's keys to their places in ``out``, in the order
+    they come (a stable sort)."""
+    fb = _FINE_BITS
+    fmask = (1 << fb) - 1
+    ncoarse = (start.shape[0] - 1) >> fb
     for c in nb.prange(ncoarse):
         pos = start[c << fb:(c + 1) << fb].copy()
         tbase = t_first + (np.int64(c) << fb)
@@ -991,14 +1001,30 @@ def _bin_range(offsets, counts, slot_t):
     return lo, hi
 
 
-def gather_sorted(offsets: np.ndarray, counts: np.ndarray, slot_t: np.ndarray,
-                  slot_p: np.ndarray, pix: np.ndarray, *, width: int, t_first_us: int,
-                  nbins: int, first_bin: int | None = None) -> np.ndarray:
-    """Events (``EVENT_DTYPE``) from the slots, sorted by time by a counting sort over the
-    ``nbins`` µs bins (bin ``b`` is time ``t_first_us + b``). With ``first_bin`` only the
-    bins from it on, ``nbins`` of them, where the events are expected, are counted (widened
-    to every event's bin). Stable: among equal times, listed-pixel order, then each
-    pixel's own order."""
+@dataclass(frozen=True)
+class SortKeys:
+    """A cycle's events as sort keys, between :func:`sort_keys` and :func:`place_events`:
+    ``keys`` (listed pixel, fine time bin, polarity) grouped by coarse time bin, ``start``
+    the first output place of every µs bin, ``t_first_us`` the time of bin 0."""
+
+    keys: np.ndarray
+    start: np.ndarray
+    t_first_us: int
+
+    @property
+    def n(self) -> int:
+        return int(self.start[-1])
+
+
+def sort_keys(offsets: np.ndarray, counts: np.ndarray, slot_t: np.ndarray,
+              slot_p: np.ndarray, *, t_first_us: int, nbins: int,
+              first_bin: int | None = None) -> SortKeys:
+    """The slots' events as :class:`SortKeys`, the first half of :func:`gather_sorted`.
+
+    Its result no longer needs the slots: a caller that lets go of them before
+    :func:`place_events` gives their memory back before the events array is first
+    written (a cycle's slots are hundreds of MB on a large sensor, and fresh memory is
+    written fastest where the kernel has just taken some back)."""
     n = int(counts.sum())
     if first_bin is None:
         first_bin = 0
@@ -1007,11 +1033,33 @@ def gather_sorted(offsets: np.ndarray, counts: np.ndarray, slot_t: np.ndarray,
         end = max(first_bin + nbins, hi + 1)
         first_bin = min(first_bin, lo)
         nbins = end - first_bin
-    out = np.empty(n, dtype=EVENT_DTYPE)
-    ys, xs = np.divmod(pix, width)
     # keys hold (listed pixel, fine bin, polarity): 32 bits while they fit
-    key_dtype = np.uint32 if pix.size < 1 << (31 - _FINE_BITS) else np.int64
-    _gather(offsets, counts, slot_t, slot_p, np.int64(first_bin), xs.astype(np.uint16),
-            ys.astype(np.uint16), np.int64(t_first_us + first_bin), np.int64(nbins),
-            np.empty(n, dtype=key_dtype), out)
+    key_dtype = np.uint32 if counts.size < 1 << (31 - _FINE_BITS) else np.int64
+    keys = np.empty(n, dtype=key_dtype)
+    fmask = (1 << _FINE_BITS) - 1
+    start = np.empty((((nbins + fmask) >> _FINE_BITS) << _FINE_BITS) + 1, dtype=np.int64)
+    _sort_keys(offsets, counts, slot_t, slot_p, np.int64(first_bin), np.int64(nbins), keys,
+               start)
+    return SortKeys(keys, start, int(t_first_us + first_bin))
+
+
+def place_events(sk: SortKeys, pix: np.ndarray, *, width: int) -> np.ndarray:
+    """The events (``EVENT_DTYPE``) of :func:`sort_keys`'s result, sorted by time;
+    ``pix`` are the listed pixels' flat indices on a sensor ``width`` wide."""
+    out = np.empty(sk.n, dtype=EVENT_DTYPE)
+    ys, xs = np.divmod(pix, width)
+    _place_keys(sk.keys, sk.start, xs.astype(np.uint16), ys.astype(np.uint16),
+                np.int64(sk.t_first_us), out)
     return out
+
+
+def gather_sorted(offsets: np.ndarray, counts: np.ndarray, slot_t: np.ndarray,
+                  slot_p: np.ndarray, pix: np.ndarray, *, width: int, t_first_us: int,
+                  nbins: int, first_bin: int | None = None) -> np.ndarray:
+    """Events (``EVENT_DTYPE``) from the slots, sorted by time by a counting sort over the
+    ``nbins`` µs bins (bin ``b`` is time ``t_first_us + b``). With ``first_bin`` only the
+    bins from it on, ``nbins`` of them, where the events are expected, are counted (widened
+    to every event's bin). Stable: among equal times, listed-pixel order, then each
+    pixel's own order. :func:`sort_keys`, then :func:`place_events`."""
+    return place_events(sort_keys(offsets, counts, slot_t, slot_p, t_first_us=t_first_us,
+                                  nbins=nbins, first_bin=first_bin), pix, width=width)
