@@ -287,3 +287,42 @@ def test_k_sweep_legend_names_each_sensor_and_both_line_styles(tmp_path, monkeyp
     assert not any(ax.get_legend() for ax in fig.axes)
     styles = [h.get_linestyle() for h in fig.legends[0].legend_handles[-2:]]
     assert styles == ["--", "-"]
+
+
+def test_chart_response_marks_silent_patches_on_a_floor_not_as_levels(tmp_path,
+                                                                      monkeypatch) -> None:
+    """A patch where nothing fires has a mean near 0: drawn as a level it would stretch the
+    log axis over ten decades and read as a response. It is an x on a floor line below
+    every responding patch instead, and no point of the method's line."""
+    from types import SimpleNamespace
+
+    import asynhdr.plots as plots
+
+    seen = {}
+
+    def keep(fig, path):
+        seen["fig"] = fig
+        return tmp_path / "r.png"
+
+    monkeypatch.setattr(plots, "_save", keep)
+    truth = np.array([1.0, 10.0, 100.0, 1000.0])
+    mean = np.array([1e-15, 0.1, 1.0, 10.0])  # the first patch never fired
+    responding = np.array([False, True, True, True])
+    r = SimpleNamespace(method="ttfe", with_cmap=True, responding=responding,
+                        stats=SimpleNamespace(mean=mean),
+                        dr=SimpleNamespace(dr_db=40.0, counted=np.ones(4, bool)),
+                        dr_steps=SimpleNamespace(dr_db=40.0))
+    result = SimpleNamespace(scene=SimpleNamespace(truth=truth), results=[r], frame=[])
+    plots.plot_chart_response(result, tmp_path / "r.png")
+    ax = seen["fig"].axes[0]
+    line = ax.lines[0]
+    y = np.asarray(line.get_ydata(), dtype=float)
+    assert np.isnan(y[0]) and np.allclose(y[1:], [0.1, 1.0, 10.0])  # median 1.0
+    circles = ax.lines[1]
+    assert list(circles.get_xdata()) == [10.0, 100.0, 1000.0]
+    floor = ax.lines[2]  # the dotted floor: a tenth of the lowest responding level
+    assert np.allclose(floor.get_ydata(), 0.01)
+    cross = ax.lines[3]
+    assert list(cross.get_xdata()) == [1.0] and cross.get_marker() == "x"
+    assert ax.get_ylim()[0] > 1e-3
+    assert "do not respond" in ax.get_title()

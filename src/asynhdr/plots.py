@@ -109,26 +109,43 @@ def plot_input_snr(result: ChartResult, path: str | os.PathLike[str]) -> Path:
 
 def plot_chart_response(result: ChartResult, path: str | os.PathLike[str]) -> Path:
     """Reconstructed patch mean against true patch radiance (log-log, normalised at the
-    median), every method with c-map and the frame camera; circles: the patches inside
-    the EMVA dynamic range."""
+    median of the responding patches), every method with c-map and the frame camera;
+    circles: the patches inside the EMVA dynamic range. A patch that does not respond
+    (``MethodResult.responding``: too few pixels fired) is no point on its method's line:
+    it is marked with an ``x`` on a floor line below every responding patch, so a
+    near-zero mean neither stretches the axis nor reads as a level."""
     plt = _pyplot()
     truth = np.asarray(result.scene.truth)
     order = np.argsort(truth)
     fig, ax = plt.subplots(figsize=(7.5, 5))
+    silent: list[tuple[np.ndarray, str]] = []
+    low = np.inf
     for r in (*[r for r in result.results if r.with_cmap], *result.frame):
-        mu = np.maximum(r.stats.mean, 1e-12)
-        norm = mu / np.median(mu)
+        resp = np.asarray(r.responding, dtype=bool) & (np.asarray(r.stats.mean) > 0)
+        mu = np.where(resp, r.stats.mean, np.nan)
+        norm = mu / np.nanmedian(mu) if resp.any() else mu
         (line,) = ax.plot(truth[order], norm[order], marker=".", lw=1,
                           ls="--" if r.method.startswith("mef") else "-",
                           label=f"{r.method}: DR {r.dr.dr_db:.1f} / {r.dr_steps.dr_db:.1f} dB")
-        c = r.dr.counted
+        c = np.asarray(r.dr.counted) & resp
         ax.plot(truth[c], norm[c], "o", mfc="none", color=line.get_color(), ms=7)
+        if resp.any():
+            low = min(low, float(np.nanmin(norm)))
+        if (~resp).any():
+            silent.append((~resp, line.get_color()))
     ax.set_xscale("log")
     ax.set_yscale("log")
+    title = "Chart response, with c-map (circles: inside the EMVA range"
+    if silent:
+        floor = (low if np.isfinite(low) else 1.0) / 10.0
+        ax.axhline(floor, color="0.6", lw=0.8, ls=":")
+        for k, (mask, colour) in enumerate(silent):
+            ax.plot(truth[mask], np.full(int(mask.sum()), floor * 1.25 ** k), "x",
+                    color=colour, ms=5)
+        title += ";\nx on the dotted floor: patches that do not respond"
     ax.set_xlabel("true patch radiance (lux)")
-    ax.set_ylabel("patch mean / median patch mean")
-    ax.set_title("Chart response, with c-map (circles: inside the EMVA range;\n"
-                 "legend: DR EMVA / DR by the paper's steps)")
+    ax.set_ylabel("patch mean / median responding patch mean")
+    ax.set_title(title + ";\nlegend: DR EMVA / DR by the paper's steps)")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=7)
     return _save(fig, path)
