@@ -326,3 +326,32 @@ def test_chart_response_marks_silent_patches_on_a_floor_not_as_levels(tmp_path,
     assert list(cross.get_xdata()) == [1.0] and cross.get_marker() == "x"
     assert ax.get_ylim()[0] > 1e-3
     assert "do not respond" in ax.get_title()
+
+
+def test_snr_per_level_joins_only_the_patches_that_respond(tmp_path, monkeypatch) -> None:
+    """The line runs through the responding patches alone; a silent patch's SNR (here a
+    flattering 40 dB) is a hollow marker off the line."""
+    from types import SimpleNamespace
+
+    import asynhdr.plots as plots
+
+    seen = {}
+
+    def keep(fig, path):
+        seen["fig"] = fig
+        return tmp_path / "s.png"
+
+    monkeypatch.setattr(plots, "_save", keep)
+    snr = np.array([10.0, 20.0, 40.0])
+    r = SimpleNamespace(method="exp", with_cmap=True, responding=np.array([True, True, False]),
+                        stats=SimpleNamespace(snr_db=snr),
+                        snr=SimpleNamespace(mean_db=15.0, n_patches=2))
+    r_raw = SimpleNamespace(**{**vars(r), "with_cmap": False})
+    result = SimpleNamespace(scene=SimpleNamespace(densities=np.array([0.0, 1.0, 2.0])),
+                             results=[r_raw, r], frame=[])
+    plots.plot_snr_per_level(result, tmp_path / "s.png")
+    ax = seen["fig"].axes[1]  # with c-map
+    joined, hollow = ax.lines
+    y = np.asarray(joined.get_ydata(), dtype=float)
+    assert np.allclose(y[:2], [10.0, 20.0]) and np.isnan(y[2])
+    assert list(hollow.get_ydata()) == [40.0] and hollow.get_markerfacecolor() == "none"

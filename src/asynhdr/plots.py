@@ -56,8 +56,9 @@ def _label(r: MethodResult) -> str:
 
 def plot_snr_per_level(result: ChartResult, path: str | os.PathLike[str]) -> Path:
     """The paper's patch SNR against density per weighting, without and with c-map
-    (its Fig. 6a); filled markers: patches that respond (counted in the mean), hollow:
-    the others."""
+    (its Fig. 6a). Filled markers joined by the line: patches that respond (counted in the
+    mean); hollow markers, not joined: the others (a patch where too few pixels fired,
+    or whose level does not follow the radiance, has an SNR that is no signal's)."""
     plt = _pyplot()
     d = np.asarray(result.scene.densities)
     order = np.argsort(d)
@@ -66,11 +67,11 @@ def plot_snr_per_level(result: ChartResult, path: str | os.PathLike[str]) -> Pat
         for r in result.results:
             if r.with_cmap != use or r.method in _BASELINES:
                 continue
-            snr = np.clip(r.stats.snr_db, -20.0, 80.0)
-            (line,) = ax.plot(d[order], snr[order], lw=1, label=_label(r))
-            resp = r.responding[order]
-            ax.plot(d[order][resp], snr[order][resp], "o", ms=3.5, color=line.get_color())
-            ax.plot(d[order][~resp], snr[order][~resp], "o", ms=3.5, mfc="none",
+            snr = np.clip(r.stats.snr_db, -20.0, 80.0)[order]
+            resp = np.asarray(r.responding, dtype=bool)[order]
+            (line,) = ax.plot(d[order], np.where(resp, snr, np.nan), "o-", lw=1, ms=3.5,
+                              label=_label(r))
+            ax.plot(d[order][~resp], snr[~resp], "o", ms=3.5, mfc="none",
                     color=line.get_color())
         for r in result.frame:
             snr = np.clip(r.stats.snr_db, -20.0, 80.0)
@@ -81,6 +82,9 @@ def plot_snr_per_level(result: ChartResult, path: str | os.PathLike[str]) -> Pat
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
     axes[0].set_ylabel("patch SNR 10 log10(mu^2/sigma^2) (dB)")
+    fig.text(0.5, -0.04, "filled, joined: patches that respond (in the mean); hollow: "
+             "patches that do not (no signal); clipped to [-20, 80] dB",
+             ha="center", fontsize=8)
     return _save(fig, path)
 
 
