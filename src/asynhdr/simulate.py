@@ -28,7 +28,7 @@ import numpy as np
 from asynhdr import __version__
 from asynhdr.events import EVENT_DTYPE, Recording
 from asynhdr.rig import Rig
-from asynhdr.sensor._rng import seed_from
+from asynhdr.sensor._rng import Z_MAX, normal_pairs, seed_from
 from asynhdr.sensor.noise import (
     NoiseArrivals,
     apply_arbiter,
@@ -72,10 +72,6 @@ Progress = Callable[[str, int, int], None]
 """``progress(stage, done, total)``, the project's progress protocol
 (:data:`asynhdr.source.Progress`) with the total always known."""
 
-_JITTER_SPAN = 8.6
-"""Largest |z| of a hash-normal draw (Box-Muller from 53-bit uniforms): bounds the
-timestamps' spread around the cycle."""
-
 _STEPPED_CHUNK = 2048
 """Pixels integrated at once by the stepped engine (their rows are held in memory)."""
 
@@ -91,17 +87,20 @@ def draw_thresholds(
     """Per-pixel ON and OFF thresholds ``(height, width)``, frozen mismatch.
 
     ``c = N(c_nominal, threshold_sigma)``, raised to ``threshold_min`` (as v2e does).
-    The ON map is drawn first, then the OFF map, from ``rng``.
+    One seed is taken from ``rng`` (when there is mismatch); pixel ``i``'s two normals
+    are :func:`asynhdr.sensor._rng.normal_pairs` of it.
     """
-    gen = np.random.default_rng(rng)
     shape = (height, width)
-    c_on = np.full(shape, sensor.threshold_on, dtype=np.float64)
-    c_off = np.full(shape, sensor.threshold_off, dtype=np.float64)
-    if sensor.threshold_sigma > 0:
-        c_on += gen.normal(0.0, sensor.threshold_sigma, shape)
-        c_off += gen.normal(0.0, sensor.threshold_sigma, shape)
-        np.maximum(c_on, sensor.threshold_min, out=c_on)
-        np.maximum(c_off, sensor.threshold_min, out=c_off)
+    if not sensor.threshold_sigma > 0:
+        return (np.full(shape, sensor.threshold_on, dtype=np.float64),
+                np.full(shape, sensor.threshold_off, dtype=np.float64))
+    z_on, z_off = normal_pairs(seed_from(np.random.default_rng(rng)), width * height)
+    c_on = z_on.reshape(shape)
+    c_off = z_off.reshape(shape)
+    for c, nominal in ((c_on, sensor.threshold_on), (c_off, sensor.threshold_off)):
+        c *= sensor.threshold_sigma
+        c += nominal
+        np.maximum(c, sensor.threshold_min, out=c)
     return c_on, c_off
 
 
@@ -720,7 +719,7 @@ def simulate_cycles(
     c_on_f = np.ascontiguousarray(c_on.ravel())
     c_off_f = np.ascontiguousarray(c_off.ravel())
     starts = rig.cycle_starts_us(n_cycles, t0_us=t0_us)
-    spread = _JITTER_SPAN * sensor.jitter_sigma_us
+    spread = Z_MAX * sensor.jitter_sigma_us  # bounds the stamps' spread around the cycle
     t_lo = -(math.ceil(spread) + 1) if spread > 0 else 0
     nbins = math.ceil(rig.period_us + sensor.latency_us + spread) + 2 - t_lo
     no_noise = NoiseArrivals(np.zeros(npix + 1, np.int64), np.zeros(0), np.zeros(0, np.int8))

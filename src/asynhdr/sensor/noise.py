@@ -53,7 +53,8 @@ def draw_defects(sensor: SensorParams, *, n_pixels: int,
     n_hot = round(sensor.hot_pixel_fraction * n_pixels) if sensor.hot_pixel_rate_hz > 0 \
         else 0
     n_dead = round(sensor.dead_pixel_fraction * n_pixels)
-    pick = rng.permutation(n_pixels)[: n_hot + n_dead] if n_hot + n_dead else np.zeros(0, int)
+    pick = (rng.choice(n_pixels, n_hot + n_dead, replace=False) if n_hot + n_dead
+            else np.zeros(0, int))
     return PixelDefects(hot=np.sort(pick[:n_hot]).astype(np.int64),
                         dead=np.sort(pick[n_hot:]).astype(np.int64))
 

@@ -27,8 +27,9 @@ and keeps a reference level ``ref`` (log units). Per pixel and cycle:
 
 So no two timestamps of a pixel are closer than ``refractory_us + latency_us``, signal
 or noise. ``z`` and ``z'`` of a pixel's ``n``-th event of cycle ``m`` are the two
-Box-Muller outputs of :func:`asynhdr.sensor._rng.hash_normal2` at ``(seed, pixel, m,
-n)``: the same seed gives the same events on any number of threads.
+standard normals of :func:`asynhdr.sensor._rng.hash_normal2` at ``(seed, pixel, m, n)``
+(ziggurat draws from a counter-based hash): the same seed gives the same events on any
+number of threads.
 
 Finding crossings: the grid is cut into runs on which the pixel's ``V`` is monotone
 (for the exact irradiance, per pixel from the turning point of ``L T1 + L_const T2``
