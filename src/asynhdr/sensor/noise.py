@@ -255,13 +255,14 @@ def _arbiter(t, service_us, drop, buffer, free_at, keep, t_out):
     max_delay = 0.0
     for i in range(t.shape[0]):
         ti = float(t[i])
-        if drop and (free_at - ti) > buffer * service_us:
-            keep[i] = False
-            dropped += 1
-            continue
+        if drop:
+            if (free_at - ti) > buffer * service_us:
+                keep[i] = False
+                dropped += 1
+                continue
+            keep[i] = True
         start = ti if ti > free_at else free_at
         free_at = start + service_us
-        keep[i] = True
         ts = np.int64(np.floor(start))
         if ts > t[i]:
             t_out[i] = ts
@@ -296,7 +297,7 @@ class Arbiter:
 
     def __call__(self, events: np.ndarray) -> np.ndarray:
         """Serve ``events`` (time-sorted); their timestamps are updated in place."""
-        keep = np.empty(events.size, np.bool_)
+        keep = np.empty(events.size if self.drop else 0, np.bool_)  # read only when dropping
         t = events["t"]
         self.free_at, delayed, dropped, max_delay = _arbiter(
             t, self.service_us, self.drop, self.buffer, self.free_at, keep, t)

@@ -780,7 +780,10 @@ class CycleFiring:
         """The listed pixels ``act`` grouped by the pair of rows they read (stable)."""
         if self.mode == 0 or act.size < 2:
             return act.astype(np.int64)
-        return act[np.argsort(self.run_key[act], kind="stable")].astype(np.int64)
+        keys = self.run_key[act]
+        if self.run_off.size - 1 <= 1 << 16:
+            keys = keys.astype(np.uint16)  # a radix sort, 10x a merge sort's speed
+        return act[np.argsort(keys, kind="stable")].astype(np.int64)
 
     def fire(self, *, c_on: np.ndarray, c_off: np.ndarray, state: PixelState,
              alive: np.ndarray, noise_off: np.ndarray, noise_q: np.ndarray,
