@@ -22,6 +22,7 @@ from asynhdr import ml
 from asynhdr.calib import flat_capture_sensor, thresholds_from_flats
 from asynhdr.calibrate import estimate_cmap
 from asynhdr.design import default_rig
+from asynhdr.memory import retain_freed_memory
 from asynhdr.metrics import central_rois, linear_run
 from asynhdr.reconstruct import CycleWindows, reconstruct, weighted_sums
 from asynhdr.scene import flat_field, step_chart
@@ -225,6 +226,7 @@ def main(argv: list[str] | None = None) -> None:
                     help="the readout holds a waiting pixel until it is read "
                          "(arbiter 'hold'; default: the preset's readout)")
     args = ap.parse_args(argv)
+    retain_freed_memory()  # as the asynhdr command does
     rig = None
     if args.rig is not None:
         from asynhdr.io.rigfile import read_rig

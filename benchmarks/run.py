@@ -28,6 +28,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--big-gb", type=float, default=1.0,
                     help="size of the synthetic EVT 3.0 file streamed by bench_decode")
     args = ap.parse_args(argv)
+    from asynhdr.memory import retain_freed_memory
+
+    retain_freed_memory()  # as the asynhdr command does; bench_sim also runs without
     sys.path.insert(0, str(HERE))
     data = _data_dir()
     args.out.mkdir(parents=True, exist_ok=True)

@@ -26,7 +26,12 @@ def _register() -> None:
 
 
 def main() -> None:
-    """Entry point of the ``asynhdr`` script."""
+    """Entry point of the ``asynhdr`` script. The process keeps the memory it frees for
+    its next allocations (:func:`asynhdr.memory.retain_freed_memory`; environment
+    ``ASYNHDR_RETAIN_MEMORY=0`` to hand it back)."""
+    from asynhdr.memory import retain_freed_memory
+
+    retain_freed_memory()
     _register()
     app()
 

@@ -42,7 +42,7 @@ import numba
 import numpy as np
 
 from asynhdr import _pool
-from asynhdr._recycle import Recycler
+from asynhdr.memory import Recycler
 
 logger = logging.getLogger(__name__)
 

@@ -57,7 +57,6 @@ from typing import Any, BinaryIO
 import numpy as np
 
 from asynhdr import _pool
-from asynhdr._recycle import Recycler
 from asynhdr.events import (
     EVENT_DTYPE,
     TRIGGER_DTYPE,
@@ -75,6 +74,7 @@ from asynhdr.io._common import (
     json_metadata,
     require_file,
 )
+from asynhdr.memory import Recycler
 
 __all__ = [
     "FORMAT",

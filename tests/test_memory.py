@@ -1,14 +1,20 @@
-"""Recycled arrays: reused only once nothing refers to them."""
+"""Memory reused instead of fresh: recycled arrays (reused only once nothing refers to them)
+and the process's freed memory kept for its next allocations."""
 
 from __future__ import annotations
 
+import os
+import platform
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
-from asynhdr._recycle import Recycler
 from asynhdr.events import EVENT_DTYPE, Recording, make_events
 from asynhdr.io import prophesee as pr
+from asynhdr.memory import Recycler, retain_freed_memory
 
 
 def test_an_idle_array_is_reused_and_a_held_one_is_not() -> None:
@@ -75,3 +81,38 @@ def test_chunks_a_caller_keeps_are_never_overwritten(tmp_path: Path) -> None:
         for held, at_yield in kept:
             np.testing.assert_array_equal(held, at_yield)
         np.testing.assert_array_equal(np.concatenate(parts), pr.read_raw(path).events)
+
+
+_RSS_AFTER_FREE = """
+import sys
+import numpy as np
+from asynhdr.memory import retain_freed_memory
+took = retain_freed_memory(keep=sys.argv[1] == "keep")
+a = np.ones(300 * 2**20 // 8)  # 300 MiB, every page written
+del a
+rss = [int(line.split()[1]) for line in open("/proc/self/status") if line.startswith("VmRSS")]
+print(int(took), rss[0] // 1024)
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux") or platform.libc_ver()[0] != "glibc",
+                    reason="retain_freed_memory sets glibc's malloc")
+@pytest.mark.parametrize("keep", [True, False])
+def test_retained_memory_stays_with_the_process_and_returned_memory_leaves(keep: bool) -> None:
+    """A freed 300 MiB array: kept in the process's resident memory with the setting,
+    handed back to the system without it (glibc's default, which unmaps it)."""
+    out = subprocess.run([sys.executable, "-c", _RSS_AFTER_FREE, "keep" if keep else "return"],
+                         capture_output=True, text=True, check=True,
+                         env={**os.environ, "ASYNHDR_RETAIN_MEMORY": "1"}).stdout.split()
+    took, rss_mib = int(out[0]), int(out[1])
+    assert took == 1
+    if keep:
+        assert rss_mib >= 300
+    else:
+        assert rss_mib < 250
+
+
+def test_retaining_memory_can_be_refused_from_the_environment(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("ASYNHDR_RETAIN_MEMORY", "0")
+    assert retain_freed_memory() is False
