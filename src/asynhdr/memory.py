@@ -21,7 +21,6 @@ the host faults too). Two remedies, one per scale:
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import os
 import sys
 import threading
@@ -48,10 +47,9 @@ def retain_freed_memory(keep: bool = True) -> bool:
     if not sys.platform.startswith("linux"):
         return False
     try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        mallopt = libc.mallopt
+        mallopt = ctypes.CDLL(None).mallopt  # the C library the process runs on
     except (OSError, AttributeError):
-        return False  # not glibc (musl has no mallopt)
+        return False
     mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
     mallopt.restype = ctypes.c_int
     mmap_max, trim = (0, 2**31 - 1) if keep else (65536, 128 * 1024)
