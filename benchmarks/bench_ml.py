@@ -24,6 +24,7 @@ from asynhdr.calibrate import estimate_cmap
 from asynhdr.design import default_rig
 from asynhdr.memory import retain_freed_memory
 from asynhdr.metrics import central_rois, linear_run
+from asynhdr.plots import plot_linear_run
 from asynhdr.reconstruct import CycleWindows, reconstruct, weighted_sums
 from asynhdr.scene import flat_field, step_chart
 from asynhdr.sensor.params import get_preset
@@ -65,16 +66,20 @@ def run_figures(lv: np.ndarray, means: list[float], snrs: list[float]) -> dict[s
                      min_snr_db=MIN_SNR_DB)
     i, j = run.lo, run.hi
     return {"run_db": run.span_db, "run_lux": [float(lv[i]), float(lv[j])] if i >= 0 else None,
+            "run_index": [int(i), int(j)] if i >= 0 else None,
             "run_levels": run.n_levels, "run_mean_snr_db": run.mean_snr_db,
             "scale": run.scale, "levels_lux": lv.tolist(), "bias": run.bias.tolist(),
             "snr_db": [float(x) for x in snrs]}
 
 
 def run_preset(preset: str, *, width: int, height: int, seed: int = 0,
-               rig: Any = None, hold: bool = False, captures: int = 1) -> dict[str, Any]:
+               rig: Any = None, hold: bool = False, captures: int = 1,
+               out_dir: Path | None = None) -> dict[str, Any]:
     """The chart for ``preset``: every method on the capture of ``seed``; with
     ``captures`` > 1, ``ml``'s runs on as many captures (seeds ``seed``, ``seed + 1``, ..;
-    the same sensor and calibration), so a run that sits on the SNR line shows as one."""
+    the same sensor and calibration), so a run that sits on the SNR line shows as one.
+    With ``out_dir``, ``ml_run_<preset>.png`` draws ``ml``'s levels, the run and the bound
+    (:func:`asynhdr.plots.plot_linear_run`)."""
     sensor = get_preset(preset)
     if hold:
         sensor = sensor.with_(name=preset, arbiter="hold")
@@ -182,6 +187,14 @@ def run_preset(preset: str, *, width: int, height: int, seed: int = 0,
     by_bound = run_figures(lv, cal["means"], [-20 * math.log10(r["crb_ln"])
                                               if r["crb_ln"] > 0 else -np.inf for r in rows])
     out["ml + calibration, bound's SNR"] = by_bound
+    if out_dir is not None:
+        curves = {name: {"snr_db": res[name]["snr_db"], "bias": res[name]["bias"],
+                         "run": res[name]["run_index"]} for name in ("ml", "ml + calibration")}
+        plot_linear_run(lv, curves, out_dir / f"ml_run_{preset}.png",
+                        bound_snr_db=[-20 * math.log10(r["crb_ln"]) if r["crb_ln"] > 0
+                                      else np.nan for r in rows],
+                        min_snr_db=MIN_SNR_DB, max_bias=MAX_BIAS,
+                        title=f"ml on the {LEVELS}-level chart, {preset}, the CLI's rig")
     print(f"  {preset:9s} {'bound SNR (ml + cal.)':22s} run {by_bound['run_db']:6.1f} "
           f"dB over {by_bound['run_levels']:2d} levels {by_bound['run_lux']}, mean SNR "
           f"{by_bound['run_mean_snr_db']:5.1f} dB", flush=True)
@@ -270,7 +283,7 @@ def main(argv: list[str] | None = None) -> None:
     results: dict[str, Any] = {"presets": {}}
     for p in args.presets:
         results["presets"][p] = run_preset(p, width=args.width, height=args.height, rig=rig,
-                                           captures=args.captures,
+                                           captures=args.captures, out_dir=args.out,
                                            hold=args.hold)
     if not args.no_speed:
         results["speed"] = speed()

@@ -355,3 +355,40 @@ def test_snr_per_level_joins_only_the_patches_that_respond(tmp_path, monkeypatch
     y = np.asarray(joined.get_ydata(), dtype=float)
     assert np.allclose(y[:2], [10.0, 20.0]) and np.isnan(y[2])
     assert list(hollow.get_ydata()) == [40.0] and hollow.get_markerfacecolor() == "none"
+
+
+def test_linear_run_plot_is_written_as_a_png(tmp_path) -> None:
+    import asynhdr.plots as plots
+
+    lv = np.array([0.1, 1.0, 10.0])
+    out = plots.plot_linear_run(lv, {"ml": {"snr_db": [15.0, 25.0, 30.0],
+                                            "bias": [0.01, 0.0, 0.02], "run": None}},
+                                tmp_path / "run.png")
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_linear_run_plot_marks_the_run(tmp_path, monkeypatch) -> None:
+    """Levels 1 to 3 form the run: filled markers there, hollow ones at 0 and 4 (one too
+    noisy, one biased); the 20 dB and 5 % lines and the bound's curve are drawn, and the
+    legend gives the run's span."""
+    import asynhdr.plots as plots
+
+    seen = {}
+
+    def keep(fig, path):
+        seen["fig"] = fig
+        return tmp_path / "r.png"
+
+    monkeypatch.setattr(plots, "_save", keep)
+    lv = np.array([0.1, 1.0, 10.0, 100.0, 1000.0])
+    plots.plot_linear_run(lv, {"ml": {"snr_db": [15.0, 25.0, 30.0, 28.0, 26.0],
+                                      "bias": [0.01, 0.0, 0.02, -0.03, 0.2], "run": [1, 3]}},
+                          tmp_path / "r.png", bound_snr_db=[16.0, 25.5, 30.5, 28.5, 26.5])
+    ax_s, ax_b = seen["fig"].axes
+    bound, _, filled, hollow = ax_s.lines[:4]
+    assert list(bound.get_ydata()) == [16.0, 25.5, 30.5, 28.5, 26.5]
+    assert list(filled.get_xdata()) == [1.0, 10.0, 100.0]
+    assert list(hollow.get_xdata()) == [0.1, 1000.0] and hollow.get_markerfacecolor() == "none"
+    assert any(list(ln.get_ydata()) == [20.0, 20.0] for ln in ax_s.lines)
+    assert any(list(ln.get_ydata()) == [5.0, 5.0] for ln in ax_b.lines)
+    assert "run 40.0 dB" in ax_s.get_legend().get_texts()[1].get_text()

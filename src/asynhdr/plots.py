@@ -22,6 +22,7 @@ __all__ = [
     "plot_chart_response",
     "plot_input_snr",
     "plot_k_sweep",
+    "plot_linear_run",
     "plot_mosaic",
     "plot_snr_per_level",
 ]
@@ -152,6 +153,51 @@ def plot_chart_response(result: ChartResult, path: str | os.PathLike[str]) -> Pa
     ax.set_title(title + ";\nlegend: DR EMVA / DR by the paper's steps)")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=7)
+    return _save(fig, path)
+
+
+def plot_linear_run(levels: Sequence[float], curves: dict[str, dict[str, Any]],
+                    path: str | os.PathLike[str], *, bound_snr_db: Sequence[float] | None = None,
+                    min_snr_db: float = 20.0, max_bias: float = 0.05,
+                    title: str = "") -> Path:
+    """Per-pixel SNR and bias per radiance level, the two lines a level must stay within to
+    count in the run of :func:`asynhdr.metrics.linear_run`, and the run itself: filled
+    markers inside it, hollow ones outside. ``curves[name]`` holds ``snr_db``, ``bias``
+    (after the run's global scale) and ``run`` (the indices of its ends, or ``None``);
+    ``bound_snr_db``: the SNR the model's Cramér-Rao bound allows, dashed, so a run whose
+    end sits on the line shows as one."""
+    plt = _pyplot()
+    lv = np.asarray(levels, dtype=np.float64)
+    fig, (ax_s, ax_b) = plt.subplots(2, 1, figsize=(8, 6.5), sharex=True,
+                                     gridspec_kw={"height_ratios": [3, 2]})
+    if bound_snr_db is not None:
+        ax_s.plot(lv, np.asarray(bound_snr_db, dtype=np.float64), "--", color="0.3", lw=1,
+                  label="the bound's SNR")
+    for name, c in curves.items():
+        snr = np.clip(np.asarray(c["snr_db"], dtype=np.float64), -20.0, 90.0)
+        bias = np.clip(100.0 * np.abs(np.asarray(c["bias"], dtype=np.float64)), 1e-3, 1e4)
+        inside = np.zeros(lv.size, dtype=bool)
+        run = c.get("run")
+        if run is not None:
+            inside[run[0]:run[1] + 1] = True
+        span = 20.0 * math.log10(lv[run[1]] / lv[run[0]]) if run is not None else 0.0
+        (line,) = ax_s.plot(lv, snr, "-", lw=1, label=f"{name}: run {span:.1f} dB")
+        for ax, y in ((ax_s, snr), (ax_b, bias)):
+            ax.plot(lv[inside], y[inside], "o", ms=4, color=line.get_color())
+            ax.plot(lv[~inside], y[~inside], "o", ms=4, mfc="none", color=line.get_color())
+        ax_b.plot(lv, bias, "-", lw=1, color=line.get_color())
+    ax_s.axhline(min_snr_db, color="k", lw=0.8)
+    ax_b.axhline(100.0 * max_bias, color="k", lw=0.8)
+    ax_s.set_ylabel("per-pixel SNR 20 log10(mean/std) (dB)")
+    ax_b.set_ylabel("|bias| after one scale (%)")
+    ax_b.set_yscale("log")
+    ax_b.set_xscale("log")
+    ax_b.set_xlabel("true radiance (lux)")
+    ax_s.set_title((title + "\n" if title else "") + f"filled: levels in the run (SNR >= "
+                   f"{min_snr_db:g} dB and |bias| <= {100 * max_bias:g} %); hollow: outside")
+    for ax in (ax_s, ax_b):
+        ax.grid(alpha=0.3, which="both")
+    ax_s.legend(fontsize=8)
     return _save(fig, path)
 
 
