@@ -184,15 +184,13 @@ def run_preset(preset: str, *, width: int, height: int, seed: int = 0,
     # ends (a measured run's ends move with the capture where a level sits on the line)
     cal = res["ml + calibration"]
     lv = np.asarray(cal["levels_lux"])
-    by_bound = run_figures(lv, cal["means"], [-20 * math.log10(r["crb_ln"])
-                                              if r["crb_ln"] > 0 else -np.inf for r in rows])
+    bound_snr = [-20 * math.log10(r["crb_ln"]) if r["crb_ln"] > 0 else np.nan for r in rows]
+    by_bound = run_figures(lv, cal["means"], bound_snr)
     out["ml + calibration, bound's SNR"] = by_bound
     if out_dir is not None:
         curves = {name: {"snr_db": res[name]["snr_db"], "bias": res[name]["bias"],
                          "run": res[name]["run_index"]} for name in ("ml", "ml + calibration")}
-        plot_linear_run(lv, curves, out_dir / f"ml_run_{preset}.png",
-                        bound_snr_db=[-20 * math.log10(r["crb_ln"]) if r["crb_ln"] > 0
-                                      else np.nan for r in rows],
+        plot_linear_run(lv, curves, out_dir / f"ml_run_{preset}.png", bound_snr_db=bound_snr,
                         min_snr_db=MIN_SNR_DB, max_bias=MAX_BIAS,
                         title=f"ml on the {LEVELS}-level chart, {preset}, the CLI's rig")
     print(f"  {preset:9s} {'bound SNR (ml + cal.)':22s} run {by_bound['run_db']:6.1f} "

@@ -30,7 +30,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     from asynhdr.memory import retain_freed_memory
 
-    retain_freed_memory()  # as the asynhdr command does; bench_sim also runs without
+    retain_freed_memory()  # as the asynhdr command does
     sys.path.insert(0, str(HERE))
     data = _data_dir()
     args.out.mkdir(parents=True, exist_ok=True)
