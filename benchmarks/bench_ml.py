@@ -139,10 +139,10 @@ def run_preset(preset: str, *, width: int, height: int, seed: int = 0,
               flush=True)
     out["methods"] = res
     if captures > 1:
-        spread: dict[str, list[float]] = {"ml": [], "ml + calibration": []}
-        for sd in range(seed, seed + captures):
-            other = rec if sd == seed else simulate(scene, rig=rig, sensor=sensor, n_cycles=2,
-                                                     rng=sd, sensor_seed=1)
+        spread: dict[str, list[float]] = {name: [res[name]["run_db"]]
+                                          for name in ("ml", "ml + calibration")}
+        for sd in range(seed + 1, seed + captures):  # the first capture is measured above
+            other = simulate(scene, rig=rig, sensor=sensor, n_cycles=2, rng=sd, sensor_seed=1)
             for name in spread:
                 fl: dict[str, Any] = {}
                 opts = {**runs[name].get("ml_options", {}), "out": fl}
