@@ -3,13 +3,14 @@ uncertainty, the bound against the estimator's spread, pixels without informatio
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 import pytest
 
 from asynhdr import ml
-from asynhdr.design import default_rig, round_trip_rig, sequential_rig
+from asynhdr.design import default_rig, round_trip_rig, sequential_rig, two_round_trips_rig
 from asynhdr.events import EVENT_DTYPE, Recording
 from asynhdr.reconstruct import CycleWindows, reconstruct
 from asynhdr.rig import Rig
@@ -22,6 +23,15 @@ QUIET = dict(leak_rate_hz=0.0, shot_noise_rate_hz=0.0, hot_pixel_fraction=0.0,
 IMX636 = get_preset("imx636").region_of_interest()
 """The IMX636 pixel, its region read alone: these few pixels never queue at the readout,
 whose delays are not in ml's model (benchmarks/bench_ml.py measures the whole array's)."""
+
+
+LC105_RIG = dict(period_us=200_000, l_const=105.40925533894597, a=0.075, b=0.225)
+"""The IMX636's designed rig before the design searched darker references (two round
+trips at 5 cycles/s, ``L_const`` 105.4 lux): the rig the cases below were found on."""
+
+
+def _lc105_rig() -> Rig:
+    return two_round_trips_rig(**LC105_RIG)
 
 
 def _scene(levels: np.ndarray, width: int) -> np.ndarray:
@@ -103,12 +113,13 @@ def test_uncalibrated_dark_pixels_find_the_likelihoods_optimum() -> None:
 
 
 def test_neighbours_fits_lead_stuck_pixels_to_their_own_likelier_optimum() -> None:
-    # IMX636 model, its designed rig, nominal thresholds only, a flat field at 1.35 lux:
-    # each pixel's two starts (the turns of the two round trips) put some pixels in the
-    # basin of an optimum far brighter than the truth, with a fair chi-square, while their
-    # events are far likelier at the truth. Started again from the median of their
-    # neighbours' fits, these pixels find it; the estimate stays each pixel's own fit.
-    rig = default_rig("imx636")
+    # IMX636 model, two round trips (L_const 105.4 lux), nominal thresholds only, a flat
+    # field at 1.35 lux: each pixel's two starts (the turns of the two round trips) put
+    # some pixels in the basin of an optimum far brighter than the truth, with a fair
+    # chi-square, while their events are far likelier at the truth. Started again from
+    # the median of their neighbours' fits, these pixels find it; the estimate stays each
+    # pixel's own fit.
+    rig = _lc105_rig()
     sensor = IMX636
     w, h, lux = 40, 30, 1.35
     rec = simulate(np.full((h, w), lux), rig=rig, sensor=sensor, n_cycles=2, rng=2,
@@ -132,12 +143,13 @@ def test_neighbours_fits_lead_stuck_pixels_to_their_own_likelier_optimum() -> No
 
 def _one_pixel(t: list[int], p: list[int], c_on: float, c_off: float,
                sd: float) -> ml.MlResult:
-    """``ml`` on one pixel of the IMX636 with its designed rig: its events (times from the
-    window's start) and its calibrated thresholds as the prior."""
+    """``ml`` on one pixel of the IMX636 with the rig its events came from (two round
+    trips, ``L_const`` 105.4 lux): its events (times from the window's start) and its
+    calibrated thresholds as the prior."""
     ev = np.zeros(len(t), dtype=EVENT_DTYPE)
     ev["t"] = t
     ev["p"] = p
-    rig = default_rig("imx636")
+    rig = _lc105_rig()
     model = ml.cached_model(rig, IMX636, window_us=rig.ramp_us)
     pri = (np.array([c_on]), np.array([c_off]), np.array([sd]), np.array([sd]))
     return ml.estimate(ev, width=1, height=1, starts_us=np.array([0]), model=model,
@@ -145,8 +157,8 @@ def _one_pixel(t: list[int], p: list[int], c_on: float, c_off: float,
 
 
 def test_a_pull_bounded_on_the_way_does_not_keep_a_worse_optimum() -> None:
-    # One pixel of the Desk scene (0.25 lux) simulated with the IMX636 and its designed
-    # rig. The start (the first turn's net change) says 8.2 lux. From there, least
+    # One pixel of the Desk scene (0.25 lux) simulated with the IMX636 and two round trips
+    # (L_const 105.4 lux). The start (the first turn's net change) says 8.2 lux. From there, least
     # squares with Huber's weights bounds the pull of the events that say "darker" and
     # settles at 1.9 lux (-2 ln likelihood 708); plain least squares from the same start
     # reaches 0.32 lux (590). Where the bounded phase clipped and the fit then takes more
@@ -501,3 +513,63 @@ def test_ml_reports_its_fits_as_they_go_with_the_same_images() -> None:
     assert all(t == total for _, _, t in seen)
     assert done == sorted(done) and done[-1] == total
     assert len(done) >= 2 * 4  # several reports a cycle
+
+
+def test_learned_thresholds_update_by_hand() -> None:
+    # one cycle of four pixels, prior 0.2 +- 0.05 (both thresholds): pixel 0 is fitted at
+    # 0.25 +- 0.01 from 12 events and learns it; pixel 1 fired 9 events (fewer than
+    # LEARN_MIN_EVENTS): unchanged; pixel 2's fit lies 0.16 off, more than LEARN_GATE x
+    # 0.05: unchanged; pixel 3's stated spread 0.001 is raised to LEARN_SD_FLOOR
+    sensor = get_preset("imx636").with_(threshold_on=0.2, threshold_off=0.2,
+                                        threshold_sigma=0.05)
+    lt = ml.LearnedThresholds()
+    pri = lt.priors(sensor, width=4, height=1)
+    np.testing.assert_array_equal(pri[0], 0.2)
+    np.testing.assert_array_equal(pri[2], 0.05)
+    c = np.array([[[0.25, 0.25, 0.36, 0.21]]], np.float32)
+    sd = np.array([[[0.01, 0.01, 0.01, 0.001]]], np.float32)
+    n = np.array([[[12, 9, 40, 40]]], np.int32)
+    res = ml.MlResult(radiance=np.ones((1, 1, 4), np.float32), sigma_log=sd, flags=n * 0,
+                      c_on=c, c_off=c, n_events=n, sd_on=sd, sd_off=sd)
+    lt.update(res)
+    on, off, s_on, s_off = lt.priors(sensor, width=4, height=1)
+    assert lt.cycles == 1
+    np.testing.assert_allclose(on, [0.25, 0.2, 0.2, 0.21], rtol=1e-6)
+    np.testing.assert_allclose(off, on)
+    np.testing.assert_allclose(s_on, [0.01, 0.05, 0.05, ml.LEARN_SD_FLOOR], rtol=1e-6)
+    np.testing.assert_allclose(s_off, s_on)
+    with pytest.raises(ValueError, match="4 pixels"):
+        lt.priors(sensor, width=2, height=1)
+    with pytest.raises(ValueError, match="threshold spreads"):
+        lt.update(dataclasses.replace(res, sd_on=None))
+
+
+def test_thresholds_learned_from_the_recordings_own_cycles() -> None:
+    # the IMX636 pixel (mismatch 0.05 about 0.22), its default rig, four mid and bright
+    # radiances, five cycles: what four cycles teach puts the thresholds nearer the truth
+    # than the nominal by far (rms 0.05), with spreads that cover their errors; the last
+    # cycle's image, fitted from them, is nearer the truth than without learning; and a
+    # recording reconstructed cycle by cycle (the CLI's way) learns the same
+    from asynhdr.reconstruct import reconstruct_cycles
+
+    rig = default_rig("imx636")
+    sensor = IMX636.with_(**QUIET)
+    levels = np.array([10.0, 300.0, 5.0e3, 1.0e5])
+    scene = _scene(levels, 24)
+    rec = simulate(scene, rig=rig, sensor=sensor, n_cycles=5, rng=3, sensor_seed=7)
+    c_on, c_off = draw_thresholds(sensor, width=24, height=4, rng=np.random.default_rng(7))
+    lt = ml.LearnedThresholds()
+    learned = reconstruct(rec, method="ml", ml_options={"learner": lt})
+    assert lt.cycles == 5
+    on, off, s_on, s_off = lt.priors(sensor, width=24, height=4)
+    for est, sd, truth in ((on, s_on, c_on.ravel()), (off, s_off, c_off.ravel())):
+        err = est - truth
+        assert math.sqrt(np.mean(err ** 2)) < 0.01
+        assert math.sqrt(np.mean((truth - sensor.threshold_on) ** 2)) > 0.03
+        assert np.mean(np.abs(err) > 3 * sd) < 0.1
+    plain = reconstruct(rec, method="ml", ml_options={"learn": False})
+    e_learned = np.log(learned[-1] / scene)
+    e_plain = np.log(plain[-1] / scene)
+    assert np.sqrt(np.nanmean(e_learned ** 2)) < np.sqrt(np.nanmean(e_plain ** 2))
+    streamed = np.stack([img for _, _, img in reconstruct_cycles(rec, method="ml")])
+    np.testing.assert_array_equal(streamed, learned)

@@ -60,9 +60,10 @@ neighbours and adds :data:`FLAG_FILLED`.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -82,6 +83,10 @@ __all__ = [
     "FLAG_NO_EVENTS",
     "FLAG_OUT_OF_RANGE",
     "FLAG_UNINFORMED",
+    "LEARN_GATE",
+    "LEARN_MIN_EVENTS",
+    "LEARN_SD_FLOOR",
+    "LearnedThresholds",
     "MlModel",
     "MlResult",
     "cached_model",
@@ -132,6 +137,12 @@ _VAR_INFORMED = 1.0
 _PROFILE_STEP = 0.25
 """Step in ``ln L`` of the likelihood's profile that checks a fit the Gauss-Newton matrix
 calls vague (:func:`_profile_walk`)."""
+_NLL_TOL = 1e-3
+"""A neighbour's start replaces a pixel's fit only when its objective (``-2 ln``
+likelihood) is lower by more than this: the same optimum reached again is no move."""
+_PROFILE_POLISH = 0.05
+"""Half the bracket in ``ln L`` of the parabola that places a point the profile walk found
+(:func:`_profile_polish`)."""
 _OUTLIER_Z2 = 16.0
 _DENSITY_FLOOR = 1e-300
 _THRESHOLD_Z = 2.5
@@ -815,16 +826,21 @@ def _start(lo, hi, t, p, mode, dead, exact, v0a, v0b, rows, g0, dlog, locate, wm
 def _gauss_newton(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
                   g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp,
                   n_iter, skip, skip2, h, bvec, x, lmat, wy, wz, stat, res, robust0,
-                  huber=_HUBER):
+                  huber=_HUBER, init=None):
     """Gauss-Newton from ``g``: least squares with Huber's weights (constant ``huber``; 0:
     plain least squares) until converged (or half the iterations), then with the outlier
     weights; with ``robust0`` the outlier weights from the first step. ``res`` gets ``(g,
     var_g, u, c_on, c_off, chi2)``; ``stat`` the last pass's largest ``z^2``, its event and
     the unweighted chi2. Returns whether Huber's weights bounded an equation's pull in the
-    first phase (without it, plain least squares takes the same steps)."""
+    first phase (without it, plain least squares takes the same steps). ``init``: where
+    ``u``, ``c_on``, ``c_off`` start (a fit's ``res``), else at their priors' means."""
     uu = mu_u
     cc1 = c1
     cc2 = c2
+    if init is not None:
+        uu = init[2]
+        cc1 = init[3]
+        cc2 = init[4]
     v00 = np.nan
     chi2 = 0.0
     robust = lam <= 0.0 or robust0
@@ -1211,6 +1227,47 @@ def _profile_walk(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
         res[1] = 2.0 / curv if curv > 0.0 and o[0] < np.inf and o[2] < np.inf else np.inf
 
 
+@nb.njit(cache=True, error_model="numpy")
+def _profile_polish(res, step, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
+                    rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, h,
+                    bvec, x, lmat, wy, wz, st_o):
+    """A point ``res`` of the likelihood's profile (:func:`_profile_at`) moved to the
+    vertex of the parabola through the profile at ``res[0]`` and ``step`` either side
+    (within that bracket) when likelier, its variance from that parabola's curvature:
+    the profile walk's steps are coarse. Returns the objective of ``res``."""
+    buf = np.empty((4, 6))
+    o = np.empty(4)
+    st = np.empty(5)
+    g = res[0]
+    gs = (g - step, g, g + step)
+    for k in range(3):
+        ga = min(max(gs[k], g_lo), g_hi)
+        o[k] = _profile_at(ga, buf[k], lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact,
+                           v0a, v0b, rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1,
+                           s2, su, mu_u, h, bvec, x, lmat, wy, wz, st, st_o)
+        buf[k, 0] = ga
+    curv = (o[0] + o[2] - 2.0 * o[1]) / (step * step)
+    best = 1
+    if o[0] < o[best]:
+        best = 0
+    if o[2] < o[best]:
+        best = 2
+    if curv > 0.0 and g_lo < g - step and g + step < g_hi:
+        gv = g - 0.5 * step * (o[2] - o[0]) / (o[0] + o[2] - 2.0 * o[1])
+        gv = min(max(gv, g - step), g + step)
+        o[3] = _profile_at(gv, buf[3], lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact,
+                           v0a, v0b, rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1,
+                           s2, su, mu_u, h, bvec, x, lmat, wy, wz, st, st_o)
+        buf[3, 0] = gv
+        if o[3] < o[best]:
+            best = 3
+    for k in range(6):
+        res[k] = buf[best, k]
+    # -2 ln L ~ (g - g_hat)^2 / var: var = 2 / curvature
+    res[1] = 2.0 / curv if curv > 0.0 else np.inf
+    return o[best]
+
+
 @nb.njit(cache=True, inline="always", error_model="numpy")
 def _u_prior(c1, c2, u_sd):
     """The prior of the start offset ``u``: ``(sd, mean)``. Uniform over the band the
@@ -1459,6 +1516,55 @@ def _estimate_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
             out_u[px] = res[5]
 
 
+@nb.njit(cache=True, parallel=True, error_model="numpy")
+def _threshold_sd_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
+                         g0, dlog, locate, wmax, con0, coff0, scon, scoff, u_sd, fit_g,
+                         fit_u, fit_con, fit_coff, fit_flag, out_son, out_soff):
+    """The posterior standard deviations of every fitted pixel's ``c_on`` and ``c_off``
+    (the others marginalised): the inverse of the Gauss-Newton matrix at its fit, its
+    events with the outlier weights and its priors; NaN where the pixel has no fit (flag
+    not 0) or the matrix is not positive definite."""
+    npx = off.shape[0] - 1
+    for px in nb.prange(npx):
+        out_son[px] = np.nan
+        out_soff[px] = np.nan
+        if fit_flag[px] != 0:
+            continue
+        h, bvec, x, lmat, wy, wz, stat, _ = _workspace()
+        c1 = con0[px]
+        c2 = coff0[px]
+        s1 = max(scon[px], 1e-6)
+        s2 = max(scoff[px], 1e-6)
+        su, _ = _u_prior(c1, c2, u_sd)
+        _normal(mode, fit_g[px], fit_u[px], fit_con[px], fit_coff[px], t, p, off[px],
+                off[px + 1], dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0, dlog,
+                locate, wmax, h, bvec, 0.0, np.int64(-1), np.int64(-1), stat, -1.0, 0.0)
+        h[1, 1] += 1.0 / (su * su)
+        h[2, 2] += 1.0 / (s1 * s1)
+        h[3, 3] += 1.0 / (s2 * s2)
+        for a2 in range(4):
+            for c in range(a2 + 1, 4):
+                h[a2, c] = h[c, a2]
+        h[0, 0] += 1e-12
+        ok, _ = _solve4(h, bvec, x, lmat, wy, wz)
+        if not ok:
+            continue
+        # (h^-1)[k, k] = || L^-1 e_k ||^2
+        for k in (2, 3):
+            for i in range(4):
+                acc = 1.0 if i == k else 0.0
+                for j in range(i):
+                    acc -= lmat[i, j] * wz[j]
+                wz[i] = acc / lmat[i, i]
+            v = 0.0
+            for i in range(4):
+                v += wz[i] * wz[i]
+            if k == 2:
+                out_son[px] = math.sqrt(v)
+            else:
+                out_soff[px] = math.sqrt(v)
+
+
 _NEIGHBOUR_GAP = 0.5
 """A pixel whose ``ln L`` lies further than this from the median of its neighbours' is
 fitted again from that median (:func:`_neighbour_starts`)."""
@@ -1493,6 +1599,7 @@ def _neighbour_starts(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b
         h, bvec, x, lmat, wy, wz, stat, st_o = _workspace()
         res = np.zeros(6)
         own = np.zeros(6)
+        held = np.zeros(6)
         ng = np.zeros(8)
         dev = np.zeros(8)
         none = np.int64(-1)
@@ -1544,7 +1651,27 @@ def _neighbour_starts(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b
             obj = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
                            rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su, mu_u, none, none,
                            h, bvec, st_o)
-            if not obj < own_obj:
+            # the likelihood's profile walked from the median (thresholds and u fitted at
+            # each ln L held): Gauss-Newton from the median, its thresholds starting at
+            # their priors, can slide back to where the residuals' least squares is least
+            # and the events' times are far less likely (the pixel's own fit)
+            st = stat
+            _profile_at(med, held, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
+                        v0b, rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su,
+                        mu_u, h, bvec, x, lmat, wy, wz, st, st_o)
+            held[0] = med
+            held[1] = np.inf
+            _profile_walk(held, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
+                          rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u,
+                          h, bvec, x, lmat, wy, wz, st_o)
+            obj2 = _profile_polish(held, _PROFILE_POLISH, lo, hi, t, p, mode, dead, sr2, tq2,
+                                   eq2, lam, exact, v0a, v0b, rows, g0, dlog, locate, wmax,
+                                   g_lo, g_hi, c1, c2, s1, s2, su, mu_u, h, bvec, x, lmat, wy,
+                                   wz, st_o)
+            if obj2 < obj:
+                obj = obj2
+                res[:] = held
+            if not obj < own_obj - _NLL_TOL:
                 continue
             flag = _settle(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
                            rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u,
@@ -1621,6 +1748,8 @@ class MlResult:
     c_on, c_off : float32 the thresholds fitted with the radiance (their priors where no
         event constrains them).
     n_events : int32 events used per pixel.
+    sd_on, sd_off : float32 the thresholds' posterior standard deviations (NaN where the
+        pixel has no fit), when :func:`estimate` was asked for them; else None.
     """
 
     radiance: np.ndarray
@@ -1629,6 +1758,16 @@ class MlResult:
     c_on: np.ndarray
     c_off: np.ndarray
     n_events: np.ndarray
+    sd_on: np.ndarray | None = None
+    sd_off: np.ndarray | None = None
+
+    @staticmethod
+    def concatenate(parts: Sequence[MlResult]) -> MlResult:
+        """The cycles of ``parts``, in order, as one result."""
+        def cat(name: str) -> Any:
+            vals = [getattr(r, name) for r in parts]
+            return None if any(v is None for v in vals) else np.concatenate(vals)
+        return MlResult(**{f.name: cat(f.name) for f in dataclasses.fields(MlResult)})
 
     @property
     def mask(self) -> np.ndarray:
@@ -1660,6 +1799,76 @@ def thresholds_prior(sensor: SensorParams, *, width: int, height: int,
     return on, off, s, s.copy()
 
 
+LEARN_SD_FLOOR = 0.005
+"""The least spread :class:`LearnedThresholds` gives a learned threshold (the spread a
+calibration file's thresholds get by default, :func:`thresholds_prior`): the posterior's
+Gaussian approximation is not trusted below it."""
+
+LEARN_MIN_EVENTS = 10
+"""A cycle teaches :class:`LearnedThresholds` a pixel's thresholds only where the pixel
+fired at least this many events in it: with as few events as parameters (``ln L``, the
+start offset and two thresholds) the fit's matrix claims a precision its optimum does not
+have (a pixel near ``L_const``, four events, a fit 1.5 off in ``ln L`` with thresholds of
+0.10 and 0.16 against 0.29 and 0.34, stated to 0.007)."""
+
+LEARN_GATE = 3.0
+"""A cycle's fit moves a pixel's learned threshold only when it lies within this many of
+the prior's standard deviations of the prior's mean: a fit further off is more likely a
+wrong optimum than a threshold that far out."""
+
+
+class LearnedThresholds:
+    """Per-pixel ON and OFF thresholds learned from a recording's own events, one cycle
+    after another: the thresholds stay while the scene changes, so each cycle's fit
+    (radiance and thresholds jointly, :func:`estimate`) starts from what the cycles before
+    it told. Sequential Bayes in the Gaussian approximation: the first cycle's prior is
+    the sensor's nominal thresholds with its mismatch as their spread; each cycle's
+    posterior (the fitted thresholds, and their standard deviations from the fit's
+    matrix with radiance and start offset marginalised) is the next cycle's prior.
+    A pixel's threshold is left as it was where the cycle gave no fit, fewer than
+    :data:`LEARN_MIN_EVENTS` events, or a fit that moved it further than
+    :data:`LEARN_GATE` standard deviations; spreads are kept at :data:`LEARN_SD_FLOOR` or
+    more.
+
+    ``cycles``: how many cycles it has learned from."""
+
+    def __init__(self) -> None:
+        self.cycles = 0
+        self._state: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+
+    def priors(self, sensor: SensorParams, *, width: int, height: int
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The priors for the next cycle (:func:`thresholds_prior`'s layout)."""
+        if self._state is None:
+            self._state = thresholds_prior(sensor, width=width, height=height)
+        if self._state[0].size != width * height:
+            raise ValueError(f"LearnedThresholds: learned on {self._state[0].size} pixels, "
+                             f"asked for {width}x{height}")
+        return self._state
+
+    def update(self, res: MlResult, cycle: int = -1) -> None:
+        """Learn from cycle ``cycle`` of ``res`` (which needs ``sd_on`` and ``sd_off``:
+        :func:`estimate` with ``threshold_sd``)."""
+        if self._state is None:
+            raise ValueError("LearnedThresholds.update: priors() first")
+        if res.sd_on is None or res.sd_off is None:
+            raise ValueError("LearnedThresholds.update: the result has no threshold "
+                             "spreads (estimate(..., threshold_sd=True))")
+        m_on, m_off, s_on, s_off = self._state
+        enough = np.asarray(res.n_events[cycle]).ravel() >= LEARN_MIN_EVENTS
+        new = []
+        for m, sd0, c, sd in ((m_on, s_on, res.c_on, res.sd_on),
+                              (m_off, s_off, res.c_off, res.sd_off)):
+            c = np.asarray(c[cycle], dtype=np.float64).ravel()
+            sd = np.asarray(sd[cycle], dtype=np.float64).ravel()
+            with np.errstate(invalid="ignore"):
+                ok = (enough & np.isfinite(c) & np.isfinite(sd) & (sd > 0)
+                      & (np.abs(c - m) <= LEARN_GATE * sd0))
+            new.append((np.where(ok, c, m), np.where(ok, np.maximum(sd, LEARN_SD_FLOOR), sd0)))
+        self._state = (new[0][0], new[1][0], new[0][1], new[1][1])
+        self.cycles += 1
+
+
 _PROGRESS_PARTS = 32
 """With a progress callback, a cycle's pixels are fitted in this many parts (each part on
 every thread), and the callback told after each."""
@@ -1670,11 +1879,13 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
          g_prior: np.ndarray | None, sg_prior: np.ndarray | None, fixed: bool,
          min_events: int = 2, start_sigma: float = 0.0,
          progress: Callable[[int], None] | None = None,
-         width: int = 0) -> tuple[np.ndarray, ...]:
+         width: int = 0, threshold_sd: bool = False) -> tuple[np.ndarray, ...]:
     """Every pixel's fit (:func:`_estimate_kernel`); ``progress(pixels_done)`` after each
     of :data:`_PROGRESS_PARTS` parts when given (the same fits, part by part). With
     ``width`` (the pixels an image of that width), the neighbours' fits are tried as
-    further starts (:func:`_neighbour_starts`), unless ``g`` has a prior or ``fixed``."""
+    further starts (:func:`_neighbour_starts`), unless ``g`` has a prior or ``fixed``.
+    Returns ``(g, sd, c_on, c_off, flag, counts)``, and with ``threshold_sd`` the
+    thresholds' posterior standard deviations (:func:`_threshold_sd_kernel`) after them."""
     con, coff, scon, scoff = (np.ascontiguousarray(a) for a in priors)
     counts = np.diff(off)
     out_g = np.empty(npx)
@@ -1725,6 +1936,16 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
                     np.maximum(todo, m[dy:dy + m.shape[0] - 2, dx:dx + m.shape[1] - 2],
                                out=todo)
             todo = todo.ravel()
+    if threshold_sd:
+        son = np.empty(npx)
+        soff = np.empty(npx)
+        _threshold_sd_kernel(off, t, p, model.mode, model.dead, model.reset_sigma ** 2, tq2,
+                             eq2, model.noise_rate_per_us, model.exact, model.v0[0],
+                             model.v0[1], model.rows, model.g0, model.dlog, model.locate,
+                             np.int64(model.window_us), con, coff, scon, scoff,
+                             float(start_sigma), out_g, out_u, out_con, out_coff, out_flag,
+                             son, soff)
+        return out_g, out_sd, out_con, out_coff, out_flag, counts, son, soff
     return out_g, out_sd, out_con, out_coff, out_flag, counts
 
 
@@ -1743,6 +1964,7 @@ def estimate(
     progress: Callable[[int, int], None] | None = None,
     pixel_progress: Callable[[int, int], None] | None = None,
     neighbours: bool = True,
+    threshold_sd: bool = False,
 ) -> MlResult:
     """Maximum-likelihood radiance per pixel and cycle.
 
@@ -1764,6 +1986,8 @@ def estimate(
     neighbours : try the neighbours' fits as further starts where a pixel's fit stands
         apart from theirs, keeping the likelier (docs/ml.md; not with ``g_prior_sigma``).
         A fit's start, not a smoothing: each pixel's estimate is its own events' fit.
+    threshold_sd : also the thresholds' posterior standard deviations (``sd_on``,
+        ``sd_off``: one more pass over each fitted pixel's events).
     """
     starts = np.asarray(starts_us, dtype=np.int64)
     npx = width * height
@@ -1775,6 +1999,8 @@ def estimate(
     con = np.empty(shape, np.float32)
     coff = np.empty(shape, np.float32)
     nev = np.empty(shape, np.int32)
+    sd_on = np.empty(shape, np.float32) if threshold_sd else None
+    sd_off = np.empty(shape, np.float32) if threshold_sd else None
     for c in range(n):
         off, t, p = group_by_pixel(events, width=width, height=height,
                                    start_us=int(starts[c]), window_us=model.window_us)
@@ -1782,9 +2008,13 @@ def estimate(
         if pixel_progress is not None:
             def step(done: int, c: int = c) -> None:
                 pixel_progress(c * npx + done, n * npx)
-        g, s, c1, c2, fl, counts = _run(model, off, t, p, npx, priors, g_prior,
-                                        g_prior_sigma, False, min_events, start_sigma,
-                                        progress=step, width=width if neighbours else 0)
+        g, s, c1, c2, fl, counts, *tsd = _run(
+            model, off, t, p, npx, priors, g_prior, g_prior_sigma, False, min_events,
+            start_sigma, progress=step, width=width if neighbours else 0,
+            threshold_sd=threshold_sd)
+        if sd_on is not None and sd_off is not None:
+            sd_on[c] = tsd[0].reshape(height, width)
+            sd_off[c] = tsd[1].reshape(height, width)
         with np.errstate(over="ignore"):
             r = np.exp(g)  # a pixel out of the range keeps the bound it reached
         r[(fl == FLAG_NO_EVENTS) | (fl == FLAG_UNINFORMED)] = np.nan
@@ -1806,7 +2036,7 @@ def estimate(
                     "(%.3g to %.3g): the bound", n_none, n_vague, n_out,
                     math.exp(model.g_lo), math.exp(model.g_hi))
     return MlResult(radiance=rad, sigma_log=sd, flags=flags, c_on=con, c_off=coff,
-                    n_events=nev)
+                    n_events=nev, sd_on=sd_on, sd_off=sd_off)
 
 
 def fisher_information(
@@ -1899,6 +2129,8 @@ def reconstruct_ml(
     settled_start: bool = False,
     progress: Callable[[str, int, int], None] | None = None,
     neighbours: bool = True,
+    learn: bool = True,
+    learner: LearnedThresholds | None = None,
 ) -> np.ndarray:
     """``ml`` on a recording: float32 radiance ``(n_cycles, height, width)`` in the unit of
     ``L_const``, NaN where a pixel has no information.
@@ -1916,9 +2148,12 @@ def reconstruct_ml(
     ``progress(stage, done, total)`` reports the fits as they go, in pixel-cycles
     (``stage``: "ml: pixels fitted", or "ml: pixels this cycle" for a single window).
     ``neighbours``: :func:`estimate`'s further starts from the neighbours' fits.
+    ``learn``: without ``thresholds`` or ``cmap``, the thresholds are learned from the
+    recording's own cycles, one after another (:class:`LearnedThresholds`; warm-up cycles
+    are fitted but not learned from); ``learner`` carries what was learned from one call
+    to the next (a recording reconstructed cycle by cycle), else each call starts from
+    the nominal thresholds.
     """
-    import dataclasses
-
     from asynhdr.events import sort_events
 
     if l_const is not None and float(l_const) != float(rig.l_const):
@@ -1940,12 +2175,35 @@ def reconstruct_ml(
     ev, _ = sort_events(rec.events)
     start_sigma = max(sensor.reset_noise_sigma, 0.02) if settled_start else 0.0
     # one cycle at a time (the CLI): its bar starts again with each cycle
-    stage = "ml: pixels fitted" if len(windows.start_us) > 1 else "ml: pixels this cycle"
+    starts = windows.start_us
+    stage = "ml: pixels fitted" if len(starts) > 1 else "ml: pixels this cycle"
     n_min = (1 if settled_start else 2) if min_events is None else int(min_events)
-    res = estimate(ev, width=w, height=h, starts_us=windows.start_us, model=model,
-                   priors=priors, min_events=n_min, start_sigma=start_sigma,
-                   neighbours=neighbours, pixel_progress=None if progress is None else
-                   (lambda done, total: progress(stage, done, total)))
+    kw: dict[str, Any] = dict(width=w, height=h, model=model, min_events=n_min,
+                              start_sigma=start_sigma, neighbours=neighbours)
+    if thresholds is None and cmap is None and learn and sensor.threshold_sigma > 0:
+        own = learner is None
+        learner = LearnedThresholds() if learner is None else learner
+        parts = []
+        npx = w * h
+        for c, st in enumerate(starts.tolist()):
+            # the last cycle's spreads serve only a learner that outlives this call
+            last = own and c == len(starts) - 1
+            step: Callable[[int, int], None] | None = None
+            if progress is not None:
+                def step(done: int, total: int, c: int = c) -> None:
+                    progress(stage, c * npx + done, len(starts) * npx)
+            part = estimate(ev, starts_us=np.array([st]),
+                            priors=learner.priors(sensor, width=w, height=h),
+                            threshold_sd=not last,
+                            pixel_progress=step, **kw)
+            if part.sd_on is not None:
+                learner.update(part)
+            parts.append(dataclasses.replace(part, sd_on=None, sd_off=None))
+        res = MlResult.concatenate(parts)
+    else:
+        res = estimate(ev, starts_us=starts, priors=priors,
+                       pixel_progress=None if progress is None else
+                       (lambda done, total: progress(stage, done, total)), **kw)
     if defects is not None:
         dead = np.asarray(defects, dtype=bool)
         if dead.shape != (h, w):

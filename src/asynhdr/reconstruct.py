@@ -77,6 +77,7 @@ opens a file: :func:`reconstruct` works on a whole recording in memory,
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from collections.abc import Callable, Iterator
@@ -863,6 +864,14 @@ class CycleImages:
         stops = np.ceil(w.start_us + w.window_us).astype(np.int64)  # t < start + window
         once = _OncePerMessage()  # what holds for every cycle is logged once
         logger.addFilter(once)
+        params = self._params
+        if self.method.name == "ml" and "learner" not in (params.ml or {}):
+            # what ml learns of the thresholds goes from one cycle to the next, as it does
+            # within one call over the whole recording (asynhdr.ml.LearnedThresholds)
+            from asynhdr.ml import LearnedThresholds
+
+            params = dataclasses.replace(params, ml={**(params.ml or {}),
+                                                     "learner": LearnedThresholds()})
         try:
             for win in self.source.windows(w.start_us, stops):
                 ev, _ = sort_events(win.events)
@@ -870,7 +879,7 @@ class CycleImages:
                                 triggers=win.triggers, metadata=self.metadata)
                 one = CycleWindows(np.array([win.start_us]), w.window_us,
                                    warmup=int(win.i < w.warmup))
-                yield win.i, win.start_us, self.method.function(rec, one, self._params)[0]
+                yield win.i, win.start_us, self.method.function(rec, one, params)[0]
                 if self._progress is not None:
                     self._progress("reconstruct", win.i + 1, len(self))
         finally:
