@@ -4,6 +4,7 @@ the calibration file, panel sweeps, the response), and the design's prediction."
 from __future__ import annotations
 
 import dataclasses
+import math
 from pathlib import Path
 
 import numpy as np
@@ -273,6 +274,29 @@ def test_design_ranks_range_then_the_simplest_rig_at_the_mean_snr() -> None:
     # one family: the higher mean SNR
     assert best((130.0, 74.2, 0), (130.0, 75.0, 0)) == 1
 
+    def best_m(*cands: tuple[float, float, float]) -> int:
+        keys = [_preference(db, m, 2, 30.0, db_m) for db, db_m, m in cands]
+        return keys.index(max(keys))
+
+    # the range with the margin first: a wider range that ends on the line loses to a
+    # narrower one with SNR to spare; equal ranges with the margin: the wider range
+    assert best_m((125.0, 115.0, 31.0), (120.0, 120.0, 31.0)) == 1
+    assert best_m((120.0, 120.0, 32.0), (125.0, 120.0, 31.0)) == 1
+
+
+def test_reference_radiances_span_both_ends_of_the_scene() -> None:
+    # 0.1 .. 316,000 lux through 1000:1 panels: the darkest level crosses for L_const <=
+    # 100 lux, the brightest for L_const >= 316 lux; the search spans 10 to 3162 lux
+    from asynhdr.design import reference_radiances
+
+    lc = reference_radiances(0.1, 10 ** 5.5, 1000.0)
+    assert len(lc) == 12 and lc[0] == pytest.approx(10.0)
+    assert lc[-1] == pytest.approx(10 ** 3.5)
+    assert np.allclose(np.diff(np.log(lc)), np.log(lc[1] / lc[0]))
+    # a narrow scene (1 .. 1000 lux): the two ends swap, the span is the same rule
+    lc = reference_radiances(1.0, 1000.0, 1000.0)
+    assert lc[0] == pytest.approx(0.1) and lc[-1] == pytest.approx(10_000.0)
+
 
 def test_cli_design_writes_the_rig_it_prints(tmp_path: Path) -> None:
     # the ideal pixel, sequential rigs at 20 cycles/s: the whole 0.1 .. 316,000 lux range
@@ -298,6 +322,21 @@ def test_cli_design_writes_the_rig_it_prints(tmp_path: Path) -> None:
     db, _, _, _ = predict(rig, get_preset("ideal"),
                           levels=np.geomspace(0.1, 10 ** 5.5, 14)).run(20.0)
     assert db == pytest.approx(130.0)
+    # the grid (12 L_const x 5 splits), then the best split's L_const beyond the grid's
+    # end while the best sits there, then halfway and a quarter of the way to its
+    # neighbours: the last four candidates, about the best of the grid and beyond
+    from asynhdr.design import SPLITS, reference_radiances
+
+    grid = reference_radiances(0.1, 10 ** 5.5, 1000.0)
+    cands = d["candidates"]
+    n_grid = len(grid) * len(SPLITS["sequential"])
+    assert all(c["l_const"] in grid for c in cands[:n_grid])
+    assert len(cands) - n_grid - 4 in (0, 1, 2)
+    step = math.log(grid[1] / grid[0])
+    last = [math.log(c["l_const"]) for c in cands[-4:]]
+    assert last[1] - last[0] == pytest.approx(step, rel=1e-9)  # both sides of one
+    assert last[3] - last[2] == pytest.approx(step / 2, rel=1e-9)  # then closer
+    assert all(c["family"] == d["params"]["family"] for c in cands[n_grid:])
     for bad, message in ((["--family", "zigzag"], "unknown rig families"),
                          (["--l-min", "10", "--l-max", "1"], "--l-min < --l-max")):
         out = tmp_path / "bad.toml"

@@ -12,6 +12,7 @@ from asynhdr.cli._app import app
 from asynhdr.cli.core import console, fail, progress_bar
 from asynhdr.design import (
     DEFAULT_FRAME_RATE_HZ,
+    DEFAULT_MARGIN_DB,
     DEFAULT_MEAN_SNR_DB,
     DEFAULT_MIN_SNR_DB,
     DEFAULT_SCENE_RANGE,
@@ -38,6 +39,10 @@ def design(
     mean_snr_db: float = typer.Option(DEFAULT_MEAN_SNR_DB, help="Mean per-pixel SNR over "
                                       "the range that settles a tie of ranges: the rig with "
                                       "the fewest events that reaches it wins."),
+    margin_db: float = typer.Option(DEFAULT_MARGIN_DB, help="Rank rigs first by the range "
+                                    "whose levels are predicted at least this far above "
+                                    "--min-snr-db (a capture scatters about the "
+                                    "prediction), then by the range itself."),
     family: list[str] = typer.Option(list(FAMILIES), "--family",
                                      help="Rig families to search (repeatable): "
                                      + " | ".join(FAMILIES) + "."),
@@ -49,10 +54,11 @@ def design(
 ) -> None:
     """Choose the rig family (sequential, or round trips: there and back, once or twice per
     cycle), L_const and the ramps' split that maximise the range over which ml's predicted
-    per-pixel SNR (the model's Cramér-Rao bound) is at least --min-snr-db and the
-    readout's queue (the whole array's, a quarter of it at one radiance) moves ml's
-    estimate by at most 5 %; between equal ranges, the rig with the fewest events whose
-    mean SNR reaches --mean-snr-db. Print it and write the rig file."""
+    per-pixel SNR (the model's Cramér-Rao bound) is at least --min-snr-db (first with
+    --margin-db to spare) and the readout's queue (the whole array's, a quarter of it at
+    one radiance) moves ml's estimate by at most 5 %; between equal ranges, the rig with
+    the fewest events whose mean SNR reaches --mean-snr-db. Print it and write the rig
+    file."""
     import numpy as np
 
     from asynhdr.design import DESIGNED, predict
@@ -68,7 +74,8 @@ def design(
         with progress_bar() as update:
             res = run(sensor, l_min=l_min, l_max=l_max, frame_rate_hz=frame_rate_hz,
                       contrast_ratio=contrast_ratio, min_snr_db=min_snr_db,
-                      mean_snr_db=mean_snr_db, families=tuple(family),
+                      mean_snr_db=mean_snr_db, margin_db=margin_db,
+                      families=tuple(family),
                       progress=lambda d, t: update("candidates", d, t))
     except ValueError as exc:
         fail(str(exc))
@@ -111,7 +118,8 @@ def design(
     pr = res.prediction
     console.print(f"predicted range (per-pixel SNR >= {min_snr_db:g} dB, readout bias <= "
                   f"{MAX_BIAS:.0%}): [bold]{res.range_db:.1f} dB[/] ({res.l_lo:.3g} to "
-                  f"{res.l_hi:.3g} lux)")
+                  f"{res.l_hi:.3g} lux); with {margin_db:g} dB to spare "
+                  f"{res.margin_range_db:.1f} dB")
     if sensor.max_event_rate_hz > 0:
         n_bad = int(np.count_nonzero((pr.snr_db >= min_snr_db) & ~pr.counts(min_snr_db)))
         console.print(f"readout: {pr.events_per_cycle:.1f} events per pixel and cycle, "
@@ -136,7 +144,8 @@ def design(
                             "preset": preset, "l_min": l_min, "l_max": l_max,
                             "frame_rate_hz": frame_rate_hz, "contrast_ratio": contrast_ratio,
                             "min_snr_db": min_snr_db, "mean_snr_db": mean_snr_db,
-                            "predicted_range_db": res.range_db,
+                            "margin_db": margin_db, "predicted_range_db": res.range_db,
+                            "margin_range_db": res.margin_range_db,
                             **{k: v for k, v in p.items()}})
         except (ValueError, OSError) as exc:
             fail(str(exc))
