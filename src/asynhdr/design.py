@@ -546,9 +546,14 @@ DESIGNED: dict[str, dict[str, Any]] = {
               "b": 0.9, "frame_rate_hz": 20.0},  # 130 (130) dB, 74.5 dB (no readout limit)
     "v2e": {"family": "sequential", "l_const": 231.0129700083158, "a": 0.35,
             "b": 0.9, "frame_rate_hz": 20.0},  # 130 (130) dB, 73.4 dB (no readout limit)
-    # 12 Mev/s for 346x260 pixels: at 20 cycles/s 0 dB, at 5 cycles/s 5 dB
-    "davis346": {"family": "sequential", "l_const": 3604.277177058313, "a": 0.35,
-                 "b": 0.9, "frame_rate_hz": 2.0},  # 85 (80) dB, 26.5 dB
+    # 12 Mev/s for 346x260 pixels: at 20 cycles/s 0 dB, at 5 cycles/s 5 dB. At 2 cycles/s
+    # the search picks L_const 3604.3, a 0.35, b 0.9 (85 dB, 80 dB with the margin), which
+    # the chart measures at 56.5 dB calibrated in 3 of 4 captures (its 128 lux level
+    # under 20 dB: the readout's queue, which the prediction's SNR leaves out); the
+    # default keeps the search's earlier pick, 85 dB predicted, 96.1 dB measured
+    # (docs/ml.md)
+    "davis346": {"family": "sequential", "l_const": 1945.2824912854148, "a": 0.3,
+                 "b": 0.8, "frame_rate_hz": 2.0},  # 85 dB, 26.5 dB
     # 1.066 Gev/s for 1280x720 pixels: at 20 cycles/s 95 dB (sequential, L_const 1874,
     # a 0.2, b 0.55); at 2 cycles/s 130 dB. At 5 cycles/s the sequential rig and the round
     # trip reach 120 (115) dB, at 26.6 and 28.5 dB mean SNR
