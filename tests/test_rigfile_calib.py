@@ -50,6 +50,28 @@ def test_rig_file_round_trip(tmp_path: Path, rig: Rig) -> None:
     assert f.sensor.threshold_sigma == sensor.threshold_sigma
     assert f.made == {"by": "test"}
     assert f.radiance_unit == "lux"
+    assert f.rig.design_range == rig.design_range
+    if rig.panel == "ideal":
+        # (a real panel's rig comes back as its transmitted waveforms, whose middle is
+        # taken from their extremes, not from L_const sqrt(CR_1))
+        assert f.rig.mid_radiance() == pytest.approx(rig.mid_radiance(), rel=1e-12)
+
+
+def test_mid_radiance_where_automatic_exposure_centres_a_scene() -> None:
+    # the paper's rig: L_const sqrt(CR_1) = 10 x sqrt(1000) = 316.2 lux; a designed rig:
+    # the middle of the range it was designed for, sqrt(0.1 x 316,228) = 177.8 lux,
+    # whatever its L_const; the same rig without that range: the middle of L_const T2 / T1
+    # over the ramp (both panels 1000:1, both to their floors: L_const itself)
+    assert Rig(l_const=10.0).mid_radiance() == pytest.approx(10.0 * math.sqrt(1000.0))
+    rig = default_rig("imx636")
+    assert rig.design_range == pytest.approx((0.1, 10 ** 5.5))
+    assert rig.mid_radiance() == pytest.approx(math.sqrt(0.1 * 10 ** 5.5))
+    assert Rig.from_metadata(rig.to_metadata()).design_range == rig.design_range
+    bare = dataclasses.replace(rig, design_range=None)
+    assert bare.mid_radiance() == pytest.approx(rig.l_const, rel=1e-9)
+    for bad in ((5.0, 1.0), (0.0, 1.0), (1.0,), "wide"):
+        with pytest.raises(ValueError, match="design_range"):
+            Rig(design_range=bad)  # type: ignore[arg-type]
 
 
 def test_rig_file_errors_name_file_and_field(tmp_path: Path) -> None:
@@ -64,6 +86,10 @@ def test_rig_file_errors_name_file_and_field(tmp_path: Path) -> None:
     p.write_text('format = "asynhdr-rig"\nversion = 1\n[rig]\nperiod_us = 50000\n'
                  'l_const = -5.0\n')
     with pytest.raises(ValueError, match=r"l_const must be positive"):
+        read_rig(p)
+    p.write_text('format = "asynhdr-rig"\nversion = 1\n[rig]\nperiod_us = 50000\n'
+                 'l_const = 5.0\ndesign_range = 3.0\n')
+    with pytest.raises(ValueError, match=r"bad.toml: rig.design_range: expected"):
         read_rig(p)
     p.write_text('format = "something"\n')
     with pytest.raises(ValueError, match=r"format"):

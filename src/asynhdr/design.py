@@ -52,6 +52,7 @@ over the cycle is zero), so the sequential rig is kept wherever it is good enoug
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from collections.abc import Callable, Sequence
@@ -528,6 +529,7 @@ def design(
                 consider(p["family"], math.exp(x), p["a"], p["b"])
     assert best is not None
     _, rig, params, pred = best
+    rig = dataclasses.replace(rig, design_range=(float(l_min), float(l_max)))
     db, lo_, hi_, _ = pred.run(min_snr_db)
     return DesignResult(rig=rig, params=params, prediction=pred, range_db=db,
                         l_lo=lo_, l_hi=hi_, min_snr_db=min_snr_db, sensor=sensor,
@@ -569,8 +571,10 @@ lists the predicted ranges)."""
 
 def default_rig(preset: str, *, period_us: int | None = None) -> Rig:
     """The designed rig of :data:`DESIGNED` for ``preset`` (a preset without an entry gets
-    the ``v2e`` one), at its frame rate unless ``period_us`` is given."""
+    the ``v2e`` one), at its frame rate unless ``period_us`` is given; its
+    ``design_range`` is :data:`DEFAULT_SCENE_RANGE`, which it was designed for."""
     p = DESIGNED.get(preset, DESIGNED["v2e"])
     period = round(1e6 / float(p["frame_rate_hz"])) if period_us is None else int(period_us)
-    return FAMILIES[str(p["family"])](period_us=period, l_const=float(p["l_const"]),
-                                      a=float(p["a"]), b=float(p["b"]))
+    rig = FAMILIES[str(p["family"])](period_us=period, l_const=float(p["l_const"]),
+                                     a=float(p["a"]), b=float(p["b"]))
+    return dataclasses.replace(rig, design_range=DEFAULT_SCENE_RANGE)

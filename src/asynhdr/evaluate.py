@@ -4,8 +4,10 @@ fusion), and measure everything against the scene itself.
 
 Absolute units (the stated rule): an HDR file's values are relative. They are multiplied
 by :func:`asynhdr.scene.exposure_scale` so that the scene's log-average lands at the
-middle of the rig's working range, :func:`rig_mid_radiance` = ``L_const sqrt(CR_1)``
-(316 lux for the default rig), unless a scale is given. The map keeps its aspect (padded
+middle of the rig's working range (:meth:`asynhdr.rig.Rig.mid_radiance`: the geometric
+middle of the range a designed rig was designed for, 178 lux for the presets' defaults;
+``L_const sqrt(CR_1)``, 316 lux, for the paper's rig), unless a scale is given. The map
+keeps its aspect (padded
 onto the sensor, never stretched); the padding is left out of every metric.
 
 The frame camera has the same pixel count and sees the same sensor illuminance (the
@@ -20,7 +22,6 @@ is one exposure putting the log-average at 18 % of the full well.
 from __future__ import annotations
 
 import logging
-import math
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -70,17 +71,9 @@ Progress = Callable[[str, int, int], None]
 
 
 def rig_mid_radiance(rig: Rig) -> float:
-    """Middle of the rig's working range, ``L_const sqrt(CR_1)`` (lux): the geometric
-    centre between ``L_const`` and ``L_const CR_1`` (see
-    :func:`asynhdr.scene.exposure_scale`). A rig with its own waveforms (a designed one)
-    works from ``L_const min T2 / max T1`` to ``L_const max T2 / min T1``: the geometric
-    centre of those."""
-    if rig.t1 is None:
-        return rig.l_const * math.sqrt(rig.contrast_ratio_1)
-    w1, w2 = rig.waveforms()
-    lo = rig.l_const * float(w2.values.min()) / float(w1.values.max())
-    hi = rig.l_const * float(w2.values.max()) / float(w1.values.min())
-    return math.sqrt(lo * hi)
+    """Middle of the rig's working range (lux), where the scenes' log-average is put:
+    :meth:`asynhdr.rig.Rig.mid_radiance`."""
+    return rig.mid_radiance()
 
 
 @dataclass(frozen=True, eq=False)

@@ -199,7 +199,7 @@ def render_report(summary: dict[str, Any], figures: dict[str, str]) -> str:
         parts.append("<h2>Real HDR scenes against ground truth (the paper's Fig. 7)</h2>")
         parts.append(
             "<p class='note'>Each scene is put in lux by automatic exposure (its log-average "
-            "at <code>L_const sqrt(CR_1)</code>, the middle of the rig's range), padded onto "
+            "at the middle of the rig's range, <code>Rig.mid_radiance</code>), padded onto "
             "the sensor with its aspect kept. Every image gets one global scale, then: RMS "
             "of log2 error (stops), median relative error, PU21-PSNR (Mantiuk and Azimi "
             "2021; truth's maximum at 4,000 cd/m^2), SSIM on the truth's log tone map. "

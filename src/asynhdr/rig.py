@@ -97,6 +97,9 @@ class Rig:
     pre_emphasis : design the drive to invert the panels' response (else the static
         inverse of the target is commanded). Ignored for ``panel="ideal"``.
     sample_rate_hz : the signal generator's sample rate for the drive.
+    design_range : the scene radiances ``(lowest, highest)`` the rig was designed for
+        (:func:`asynhdr.design.design`), in the unit of ``l_const``; None if unknown.
+        :meth:`mid_radiance` is their geometric middle.
     """
 
     period_us: int = 50_000
@@ -114,6 +117,7 @@ class Rig:
     panel: str = "ideal"
     pre_emphasis: bool = True
     sample_rate_hz: float = DEFAULT_SAMPLE_RATE_HZ
+    design_range: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         if int(self.period_us) != self.period_us or self.period_us <= 0:
@@ -141,6 +145,33 @@ class Rig:
         if not (self.sample_rate_hz > 0 and math.isfinite(self.sample_rate_hz)):
             raise ValueError(f"sample_rate_hz must be positive and finite, got "
                              f"{self.sample_rate_hz}")
+        if self.design_range is not None:
+            try:
+                lo, hi = (float(v) for v in self.design_range)
+            except (TypeError, ValueError):
+                raise ValueError(f"design_range must be (lowest, highest), got "
+                                 f"{self.design_range!r}") from None
+            if not (0 < lo < hi and math.isfinite(hi)):
+                raise ValueError(f"design_range must have 0 < lowest < highest, got "
+                                 f"{self.design_range!r}")
+            object.__setattr__(self, "design_range", (lo, hi))
+
+    def mid_radiance(self) -> float:
+        """The radiance at the middle of the rig's working range, where automatic exposure
+        puts a scene's log-average (:func:`asynhdr.scene.exposure_scale`): the geometric
+        middle of :attr:`design_range` for a designed rig; else, for the paper's rig,
+        ``L_const sqrt(CR_1)`` (between ``L_const``, below which pixels only see the
+        reference fall, and ``L_const CR_1``, above which the scene dominates from the
+        start), and for a rig with its own waveforms the geometric middle of
+        ``L_const T2 / T1`` over the ramp's extremes."""
+        if self.design_range is not None:
+            return math.sqrt(self.design_range[0] * self.design_range[1])
+        if self.t1 is None:
+            return self.l_const * math.sqrt(self.contrast_ratio_1)
+        w1, w2 = self.waveforms()
+        lo = self.l_const * float(w2.values.min()) / float(w1.values.max())
+        hi = self.l_const * float(w2.values.max()) / float(w1.values.min())
+        return math.sqrt(lo * hi)
 
     @property
     def ramp_us(self) -> float:
@@ -210,6 +241,8 @@ class Rig:
             "pre_emphasis": bool(self.pre_emphasis),
             "sample_rate_hz": float(self.sample_rate_hz),
         }
+        if self.design_range is not None:
+            d["design_range"] = [float(v) for v in self.design_range]
         if self.t1 is not None:
             d["t1"] = {"name": self.t1.name, "phase": self.t1.phase.tolist(),
                        "values": self.t1.values.tolist()}
@@ -225,6 +258,8 @@ class Rig:
                  "contrast_ratio_2", "t2_stop", "l_const", "k_lens", "n_knots", "panel",
                  "pre_emphasis", "sample_rate_hz")
         kw: dict[str, Any] = {k: d[k] for k in names if k in d}
+        if d.get("design_range") is not None:
+            kw["design_range"] = tuple(float(v) for v in d["design_range"])
         for name in ("t1", "t2"):
             if name in d:
                 w = d[name]

@@ -451,11 +451,8 @@ def exposure_scale(radiance: npt.ArrayLike, *, target: float) -> float:
 
     ``s = target / log_average(L)``. HDR files hold relative values (or absolute
     values of another scene); multiplied by ``s`` they become the illuminance the rig
-    sees (lux), with the scene's middle at ``target``. For the rig the middle of its
-    working range is ``L_const sqrt(CR_1)``: the geometric centre between ``L_const``
-    (darker pixels only see the reference fall) and ``L_const CR_1`` (brighter pixels
-    start the cycle already dominated by the scene; ``CR_1`` the scene panel's
-    contrast ratio), see :func:`asynhdr.evaluate.rig_mid_radiance`.
+    sees (lux), with the scene's middle at ``target``: for a rig, the middle of its
+    working range, :meth:`asynhdr.rig.Rig.mid_radiance`.
     """
     if not (math.isfinite(target) and target > 0):
         raise ValueError(f"exposure_scale: target must be > 0, got {target}")

@@ -444,7 +444,7 @@ def simulate(
         if scale is not None and not (scale > 0 and math.isfinite(scale)):
             fail(f"--scale must be a positive number, got {scale}")
         sc = _scene_from_spec(scene, width, height, scale,
-                              target=_rig_middle(rig),
+                              target=rig.mid_radiance(),
                               cfa=cfa or ("rggb" if colour else None))
         if motion is not None:
             sc = _moving(sc, motion, duration_us=n_cycles * rig.period_us,
@@ -486,18 +486,6 @@ def simulate(
                 if ro["max_delay_us"] > sensor.timestamp_resolution_us else "")
         console.print(f"readout: {ro['delayed']:,} of {ro['emitted']:,} events delayed, by up "
                       f"to {ro['max_delay_us']:.0f} µs ({ro['rate_hz']:.3g} ev/s{share}){held}")
-
-
-def _rig_middle(rig: Any) -> float:
-    """The radiance at the middle of a rig's working range (where automatic exposure puts a
-    scene's log-average): ``L_const sqrt(CR_1)`` for the paper's rig; for a rig with its
-    own waveforms the geometric middle of ``L_const T2 / T1`` over the ramp's extremes."""
-    if rig.t1 is None:
-        return float(rig.l_const * math.sqrt(rig.contrast_ratio_1))
-    w1, w2 = rig.waveforms()
-    lo = rig.l_const * float(w2.values.min()) / float(w1.values.max())
-    hi = rig.l_const * float(w2.values.max()) / float(w1.values.min())
-    return float(math.sqrt(lo * hi))
 
 
 def _simulate_rig(preset: str, rig_file: Path | None, *, period_us: int | None,

@@ -20,6 +20,7 @@ The format (``format = "asynhdr-rig"``, ``version = 1``)::
     panel = "ideal"             # ideal | tn | fast_shutter: the drive goes through these
     pre_emphasis = true
     sample_rate_hz = 1000000.0
+    design_range = [0.1, 316227.8]  # optional: the scene radiances it was designed for
 
     [rig.t1]                    # optional: the TRANSMITTED waveform, measured or designed
     phase = [0.0, ..., 1.0]     # fraction of the period, 0 to 1, increasing
@@ -66,7 +67,7 @@ VERSION = 1
 
 _RIG_KEYS = ("period_us", "ramp_fraction", "t1_shape", "t2_shape", "contrast_ratio_1",
              "contrast_ratio_2", "t2_stop", "l_const", "k_lens", "n_knots", "panel",
-             "pre_emphasis", "sample_rate_hz")
+             "pre_emphasis", "sample_rate_hz", "design_range")
 
 
 class RigFile:
@@ -131,6 +132,7 @@ _COMMENTS = {
     "l_const": "reference radiance, in radiance_unit",
     "k_lens": "lens attenuation (both paths)",
     "panel": "ideal | tn | fast_shutter",
+    "design_range": "scene radiances designed for (automatic exposure centres on them)",
 }
 
 
@@ -216,6 +218,11 @@ def read_rig(path: str | os.PathLike[str]) -> RigFile:
         raise _bad(p, "[rig]", f"unknown keys {sorted(extra)}; expected some of "
                    f"{sorted(allowed)}")
     kw: dict[str, Any] = {k: rd[k] for k in _RIG_KEYS if k in rd}
+    if "design_range" in kw:
+        dr = kw["design_range"]
+        if not isinstance(dr, list) or len(dr) != 2:
+            raise _bad(p, "rig.design_range", f"expected [lowest, highest], got {dr!r}")
+        kw["design_range"] = tuple(dr)
     for name in ("t1", "t2"):
         if name in rd:
             w = rd[name]
