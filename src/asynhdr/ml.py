@@ -122,7 +122,8 @@ as bright as the upper bound (or at most as dark as the lower), and the image ho
 bound, as a saturated pixel of a camera holds its full scale; no standard deviation."""
 FLAG_UNINFORMED = 4
 """Flag: the estimate's standard deviation of ``ln L`` is 1 or more (the events fix ``L``
-to no better than a factor e: a plateau of the likelihood): NaN, the deviation kept."""
+to no better than a factor e: a plateau of the likelihood): NaN, the deviation kept (NaN
+where it is infinite: a profile without curvature)."""
 FLAG_FILLED = 8
 """Flag (with :data:`FLAG_NO_EVENTS`): a dead pixel of the calibration's map, given the
 median of its measured neighbours (:func:`asynhdr.defects.fill_defects`); no deviation."""
@@ -1668,7 +1669,7 @@ def _neighbour_starts(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b
                                    eq2, lam, exact, v0a, v0b, rows, g0, dlog, locate, wmax,
                                    g_lo, g_hi, c1, c2, s1, s2, su, mu_u, h, bvec, x, lmat, wy,
                                    wz, st_o)
-            if obj2 < obj:
+            if obj2 < obj and held[1] < _VAR_INFORMED:
                 obj = obj2
                 res[:] = held
             if not obj < own_obj - _NLL_TOL:
@@ -2018,7 +2019,9 @@ def estimate(
         with np.errstate(over="ignore"):
             r = np.exp(g)  # a pixel out of the range keeps the bound it reached
         r[(fl == FLAG_NO_EVENTS) | (fl == FLAG_UNINFORMED)] = np.nan
-        s[(fl == FLAG_NO_EVENTS) | (fl == FLAG_OUT_OF_RANGE)] = np.nan
+        # no deviation where there is no estimate, and none where the likelihood's profile
+        # has no curvature to give one (an infinite deviation: no information)
+        s[(fl == FLAG_NO_EVENTS) | (fl == FLAG_OUT_OF_RANGE) | ~np.isfinite(s)] = np.nan
         rad[c] = r.reshape(height, width)
         sd[c] = s.reshape(height, width)
         flags[c] = fl.reshape(height, width)
