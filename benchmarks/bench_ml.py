@@ -141,6 +141,8 @@ def run_preset(preset: str, *, width: int, height: int, seed: int = 0,
     if captures > 1:
         spread: dict[str, list[float]] = {name: [res[name]["run_db"]]
                                           for name in ("ml", "ml + calibration")}
+        snr: dict[str, list[float]] = {name: [res[name]["run_mean_snr_db"]]
+                                       for name in spread}
         for sd in range(seed + 1, seed + captures):  # the first capture is measured above
             other = simulate(scene, rig=rig, sensor=sensor, n_cycles=2, rng=sd, sensor_seed=1)
             for name in spread:
@@ -148,12 +150,16 @@ def run_preset(preset: str, *, width: int, height: int, seed: int = 0,
                 opts = {**runs[name].get("ml_options", {}), "out": fl}
                 img = reconstruct(other, method="ml", ml_options=opts)[-1]
                 img = np.where(fl["flags"][-1] == 0, img, np.nan)
-                spread[name].append(chart_figures(img, scene)["run_db"])
-        out["captures"] = {"seeds": list(range(seed, seed + captures)), **spread}
+                f = chart_figures(img, scene)
+                spread[name].append(f["run_db"])
+                snr[name].append(f["run_mean_snr_db"])
+        out["captures"] = {"seeds": list(range(seed, seed + captures)), **spread,
+                           "mean_snr_db": snr}
         for name, v in spread.items():
             print(f"  {preset:9s} {name:22s} run over {captures} captures: "
-                  + ", ".join(f"{x:.1f}" for x in v) + f" dB (median {np.median(v):.1f})",
-                  flush=True)
+                  + ", ".join(f"{x:.1f}" for x in v) + f" dB (median {np.median(v):.1f}); "
+                  "mean SNR over each run " + ", ".join(f"{x:.1f}" for x in snr[name])
+                  + " dB", flush=True)
     # ml's spread against the model's bound, calibrated thresholds, per level
     model = ml.cached_model(rig, sensor, window_us=rig.ramp_us)
     quiet = sensor.with_(name="quiet", reset_noise_sigma=0.0, jitter_sigma_us=0.0,

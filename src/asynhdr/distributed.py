@@ -131,7 +131,11 @@ def reconstruct_distributed(client: Any, path: str | os.PathLike[str], windows: 
     ``path``, opened with ``source_options`` (``width``, ``height``, ... of
     :func:`asynhdr.io.open_source`). Yields ``(cycle, start_us, image)`` in cycle order.
     ``options``: method, k, thresholds, rig, ml_options, ... as for
-    ``reconstruct_cycles``; ``cmap`` a c-map file. As in the serial run, an ``"out"`` dict
+    ``reconstruct_cycles``; ``cmap`` a c-map file. ``ml`` without calibrated thresholds
+    learns them from cycle to cycle within each run (:class:`asynhdr.ml.LearnedThresholds`),
+    so its images differ from the serial run's, where every cycle learns from all before
+    it (the first cycle of each run starts from the nominal thresholds). As in the serial
+    run, an ``"out"`` dict
     in ``ml_options`` holds the yielded cycle's uncertainty and flags when it is yielded."""
     n = windows.n_cycles
     parts = min(n, n_parts or 2 * _n_workers(client))

@@ -201,10 +201,12 @@ def reconstruct(
         sensor = mlo.sensor or sensor_of(plan.metadata)
         if sensor.threshold_sigma > 0:
             console.print(f"ml: no --calibration, so every pixel's thresholds were fitted "
-                          f"from its own events around the nominal {sensor.threshold_on:.3g} "
-                          f"/ {sensor.threshold_off:.3g} (mismatch {sensor.threshold_sigma:g});"
-                          " thresholds calibrated from flat fields (asynhdr "
-                          "calibrate-thresholds) widen the range (docs/ml.md)")
+                          f"from its own events, starting from the nominal "
+                          f"{sensor.threshold_on:.3g} / {sensor.threshold_off:.3g} (mismatch "
+                          f"{sensor.threshold_sigma:g}) and learned from cycle to cycle "
+                          "(later cycles are the better for it); thresholds calibrated from "
+                          "flat fields (asynhdr calibrate-thresholds) widen the range "
+                          "(docs/ml.md)")
 
 
 @app.command()
