@@ -536,6 +536,31 @@ def _moment(mode, g, t, p, lo, hi, dead, con, coff, u, exact, v0a, v0b, rows, g0
 
 
 @nb.njit(cache=True, inline="always", error_model="numpy")
+def _mirror(h):
+    """The normal matrix made whole: :func:`_normal` fills its lower triangle, copied here
+    above the diagonal; and a tiny ridge on its ``ln L`` entry."""
+    for a2 in range(4):
+        for c in range(a2 + 1, 4):
+            h[a2, c] = h[c, a2]
+    h[0, 0] += 1e-12
+
+
+@nb.njit(cache=True, inline="always", error_model="numpy")
+def _inv_diag(lmat, k, z):
+    """``(h^-1)[k, k] = || L^-1 e_k ||^2`` from the Cholesky factor ``lmat`` of a 4x4
+    ``h`` (:func:`_solve4`); ``z`` is work space."""
+    for i in range(4):
+        s = 1.0 if i == k else 0.0
+        for j in range(i):
+            s -= lmat[i, j] * z[j]
+        z[i] = s / lmat[i, i]
+    v = 0.0
+    for i in range(4):
+        v += z[i] * z[i]
+    return v
+
+
+@nb.njit(cache=True, inline="always", error_model="numpy")
 def _solve4(h, b, x, lmat, y, z):
     """Solve the symmetric positive-definite ``h x = b`` (4x4, Cholesky; ``lmat``, ``y``,
     ``z`` are work space); also returns ``(h^-1)[0, 0]``. False when ``h`` is not positive
@@ -561,16 +586,7 @@ def _solve4(h, b, x, lmat, y, z):
         for k in range(i + 1, 4):
             s -= lmat[k, i] * x[k]
         x[i] = s / lmat[i, i]
-    # (h^-1)[0,0] = || L^-1 e_0 ||^2
-    for i in range(4):
-        s = 1.0 if i == 0 else 0.0
-        for k in range(i):
-            s -= lmat[i, k] * z[k]
-        z[i] = s / lmat[i, i]
-    v00 = 0.0
-    for i in range(4):
-        v00 += z[i] * z[i]
-    return True, v00
+    return True, _inv_diag(lmat, 0, z)
 
 
 @nb.njit(cache=True, error_model="numpy")
@@ -864,10 +880,7 @@ def _gauss_newton(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v
         if sgp > 0.0:
             h[0, 0] += 1.0 / (sgp * sgp)
             bvec[0] += (gp - g) / (sgp * sgp)
-        for a2 in range(4):
-            for c in range(a2 + 1, 4):
-                h[a2, c] = h[c, a2]
-        h[0, 0] += 1e-12
+        _mirror(h)
         ok, v00 = _solve4(h, bvec, x, lmat, wy, wz)
         if not ok:
             v00 = np.nan
@@ -1543,27 +1556,12 @@ def _threshold_sd_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, 
         h[1, 1] += 1.0 / (su * su)
         h[2, 2] += 1.0 / (s1 * s1)
         h[3, 3] += 1.0 / (s2 * s2)
-        for a2 in range(4):
-            for c in range(a2 + 1, 4):
-                h[a2, c] = h[c, a2]
-        h[0, 0] += 1e-12
+        _mirror(h)
         ok, _ = _solve4(h, bvec, x, lmat, wy, wz)
         if not ok:
             continue
-        # (h^-1)[k, k] = || L^-1 e_k ||^2
-        for k in (2, 3):
-            for i in range(4):
-                acc = 1.0 if i == k else 0.0
-                for j in range(i):
-                    acc -= lmat[i, j] * wz[j]
-                wz[i] = acc / lmat[i, i]
-            v = 0.0
-            for i in range(4):
-                v += wz[i] * wz[i]
-            if k == 2:
-                out_son[px] = math.sqrt(v)
-            else:
-                out_soff[px] = math.sqrt(v)
+        out_son[px] = math.sqrt(_inv_diag(lmat, 2, wz))
+        out_soff[px] = math.sqrt(_inv_diag(lmat, 3, wz))
 
 
 _NEIGHBOUR_GAP = 0.5
