@@ -843,21 +843,16 @@ def _start(lo, hi, t, p, mode, dead, exact, v0a, v0b, rows, g0, dlog, locate, wm
 def _gauss_newton(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
                   g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp,
                   n_iter, skip, skip2, h, bvec, x, lmat, wy, wz, stat, res, robust0,
-                  huber=_HUBER, init=None):
+                  huber=_HUBER):
     """Gauss-Newton from ``g``: least squares with Huber's weights (constant ``huber``; 0:
     plain least squares) until converged (or half the iterations), then with the outlier
     weights; with ``robust0`` the outlier weights from the first step. ``res`` gets ``(g,
     var_g, u, c_on, c_off, chi2)``; ``stat`` the last pass's largest ``z^2``, its event and
     the unweighted chi2. Returns whether Huber's weights bounded an equation's pull in the
-    first phase (without it, plain least squares takes the same steps). ``init``: where
-    ``u``, ``c_on``, ``c_off`` start (a fit's ``res``), else at their priors' means."""
+    first phase (without it, plain least squares takes the same steps)."""
     uu = mu_u
     cc1 = c1
     cc2 = c2
-    if init is not None:
-        uu = init[2]
-        cc1 = init[3]
-        cc2 = init[4]
     v00 = np.nan
     chi2 = 0.0
     robust = lam <= 0.0 or robust0
@@ -1530,6 +1525,37 @@ def _estimate_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
             out_u[px] = res[5]
 
 
+@nb.njit(cache=True, error_model="numpy")
+def _threshold_sd_at(px, off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
+                     g0, dlog, locate, wmax, con0, coff0, scon, scoff, u_sd, fit_g, fit_u,
+                     fit_con, fit_coff, fit_flag, out_son, out_soff, h, bvec, x, lmat, wy,
+                     wz, stat):
+    """:func:`_threshold_sd_kernel` for pixel ``px`` (the rest are work space)."""
+    out_son[px] = np.nan
+    out_soff[px] = np.nan
+    if fit_flag[px] != 0:
+        return
+    h[:, :] = 0.0
+    bvec[:] = 0.0
+    c1 = con0[px]
+    c2 = coff0[px]
+    s1 = max(scon[px], 1e-6)
+    s2 = max(scoff[px], 1e-6)
+    su, _ = _u_prior(c1, c2, u_sd)
+    _normal(mode, fit_g[px], fit_u[px], fit_con[px], fit_coff[px], t, p, off[px],
+            off[px + 1], dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0, dlog,
+            locate, wmax, h, bvec, 0.0, np.int64(-1), np.int64(-1), stat, -1.0, 0.0)
+    h[1, 1] += 1.0 / (su * su)
+    h[2, 2] += 1.0 / (s1 * s1)
+    h[3, 3] += 1.0 / (s2 * s2)
+    _mirror(h)
+    ok, _ = _solve4(h, bvec, x, lmat, wy, wz)
+    if not ok:
+        return
+    out_son[px] = math.sqrt(_inv_diag(lmat, 2, wz))
+    out_soff[px] = math.sqrt(_inv_diag(lmat, 3, wz))
+
+
 @nb.njit(cache=True, parallel=True, error_model="numpy")
 def _threshold_sd_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
                          g0, dlog, locate, wmax, con0, coff0, scon, scoff, u_sd, fit_g,
@@ -1539,29 +1565,13 @@ def _threshold_sd_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, 
     events with the outlier weights and its priors; NaN where the pixel has no fit (flag
     not 0) or the matrix is not positive definite."""
     npx = off.shape[0] - 1
-    for px in nb.prange(npx):
-        out_son[px] = np.nan
-        out_soff[px] = np.nan
-        if fit_flag[px] != 0:
-            continue
-        h, bvec, x, lmat, wy, wz, stat, _ = _workspace()
-        c1 = con0[px]
-        c2 = coff0[px]
-        s1 = max(scon[px], 1e-6)
-        s2 = max(scoff[px], 1e-6)
-        su, _ = _u_prior(c1, c2, u_sd)
-        _normal(mode, fit_g[px], fit_u[px], fit_con[px], fit_coff[px], t, p, off[px],
-                off[px + 1], dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0, dlog,
-                locate, wmax, h, bvec, 0.0, np.int64(-1), np.int64(-1), stat, -1.0, 0.0)
-        h[1, 1] += 1.0 / (su * su)
-        h[2, 2] += 1.0 / (s1 * s1)
-        h[3, 3] += 1.0 / (s2 * s2)
-        _mirror(h)
-        ok, _ = _solve4(h, bvec, x, lmat, wy, wz)
-        if not ok:
-            continue
-        out_son[px] = math.sqrt(_inv_diag(lmat, 2, wz))
-        out_soff[px] = math.sqrt(_inv_diag(lmat, 3, wz))
+    for blk in nb.prange((npx + _BLOCK - 1) // _BLOCK):
+        h, bvec, x, lmat, wy, wz, stat, _ = _workspace()  # once per block of pixels
+        for px in range(blk * _BLOCK, min(npx, (blk + 1) * _BLOCK)):
+            _threshold_sd_at(px, off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
+                             rows, g0, dlog, locate, wmax, con0, coff0, scon, scoff, u_sd,
+                             fit_g, fit_u, fit_con, fit_coff, fit_flag, out_son, out_soff, h,
+                             bvec, x, lmat, wy, wz, stat)
 
 
 _NEIGHBOUR_GAP = 0.5
@@ -1654,10 +1664,9 @@ def _neighbour_starts(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b
             # each ln L held): Gauss-Newton from the median, its thresholds starting at
             # their priors, can slide back to where the residuals' least squares is least
             # and the events' times are far less likely (the pixel's own fit)
-            st = stat
             _profile_at(med, held, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
                         v0b, rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su,
-                        mu_u, h, bvec, x, lmat, wy, wz, st, st_o)
+                        mu_u, h, bvec, x, lmat, wy, wz, stat, st_o)
             held[0] = med
             held[1] = np.inf
             _profile_walk(held, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
@@ -2150,8 +2159,9 @@ def reconstruct_ml(
     (``stage``: "ml: pixels fitted", or "ml: pixels this cycle" for a single window).
     ``neighbours``: :func:`estimate`'s further starts from the neighbours' fits.
     ``learn``: without ``thresholds`` or ``cmap``, the thresholds are learned from the
-    recording's own cycles, one after another (:class:`LearnedThresholds`; warm-up cycles
-    are fitted but not learned from); ``learner`` carries what was learned from one call
+    recording's own cycles, one after another (:class:`LearnedThresholds`; a warm-up
+    cycle's pixels start from another state, which the fit's start offset takes up, so it
+    teaches too); ``learner`` carries what was learned from one call
     to the next (a recording reconstructed cycle by cycle), else each call starts from
     the nominal thresholds.
     """
