@@ -130,7 +130,7 @@ def run_preset(preset: str, *, width: int, height: int, seed: int = 0,
         if flags:
             # a pixel at a bound of ml's range holds the bound: no measurement of its level
             # (a patch there would read flat, at infinite SNR)
-            img = np.where(flags["flags"][-1] == 0, img, np.nan)
+            img = np.where(ml.valid_flags(flags["flags"][-1]), img, np.nan)
         f = chart_figures(img, scene)
         f["seconds"] = dt
         res[name] = f

@@ -290,22 +290,57 @@ def test_bound_matches_estimator_spread() -> None:
     assert 0.7 < spread / crb < 1.4, (spread, crb)
 
 
-def test_pixels_without_information_are_nan_and_flagged() -> None:
+def test_silent_and_one_event_pixels_are_estimated_from_how_few_they_fired() -> None:
     # the paper's rig (linear ramps, t2_stop 0.5) has a blind band at 0.5 L_const: a
-    # pixel there sees rho dT1 + dT2 = 0.5 * 0.999 - 0.5 * 0.999 = 0 and fires nothing
+    # pixel there sees rho dT1 + dT2 = 0 and its log irradiance swings by
+    # |ln((L T1(1) + L_const T2(1)) / (L T1(0) + L_const T2(0)))| over the ramp, which is
+    # under c_on + c_off = 0.4 from about 3.2 to 7.1 lux: silence (or one event at the
+    # band's edges) says L lies there. Each such pixel is estimated (FLAG_FEW_EVENTS),
+    # its truth within two of its stated deviations, which are wide; a pixel with events
+    # enough keeps its fit
     rig = Rig(l_const=10.0, contrast_ratio_1=1000.0, contrast_ratio_2=1000.0)
     sensor = get_preset("ideal")
-    rho = 0.5 * (1 - 1e-3) / (1 - 1e-3)  # T2 falls by 0.5 (1 - floor), T1 rises by 1 - floor
-    scene = np.array([[rho * 10.0, 1000.0]])
-    rec = simulate(scene, rig=rig, sensor=sensor, n_cycles=1, rng=0)
-    assert not np.any(rec.events["x"] == 0)
-    img = reconstruct(rec, method="ml")[0]
-    assert math.isnan(img[0, 0])
-    assert img[0, 1] == pytest.approx(1000.0, rel=1e-3)
+    levels = 5.0 * np.exp(np.linspace(-0.8, 0.8, 17))
+    rec = simulate(_scene(np.append(levels, 1000.0), 2), rig=rig, sensor=sensor, n_cycles=2,
+                   rng=0)
     out: dict = {}
-    reconstruct(rec, method="ml", ml_options={"out": out})
-    assert out["flags"][0, 0, 0] == ml.FLAG_NO_EVENTS and out["flags"][0, 0, 1] == 0
-    assert math.isnan(out["sigma_log"][0, 0, 0])
+    img = reconstruct(rec, method="ml", ml_options={"out": out})[-1][:, 0]
+    n, fl, sd = out["n_events"][-1][:, 0], out["flags"][-1][:, 0], out["sigma_log"][-1][:, 0]
+    few = n < 2
+    assert few[:-1].sum() >= 10 and np.any(n[:-1] == 0) and np.any(n[:-1] == 1)
+    assert np.all(fl[few] == ml.FLAG_FEW_EVENTS) and np.all(fl[~few] == 0)
+    truth = np.append(levels, 1000.0)
+    z = np.log(img / truth) / sd
+    assert np.all(np.abs(z[few]) < 2.0)
+    assert np.all((sd[few] > 0.1) & (sd[few] < 0.6))
+    assert img[-1] == pytest.approx(1000.0, rel=1e-3)
+    assert ml.valid_flags(fl).all()
+
+
+def test_a_silent_pixel_far_from_l_const_is_taken_for_dead() -> None:
+    # a sensor with 5 % dead pixels: in a patch at 1000 lux (it swings far beyond both
+    # thresholds) a silent pixel is dead: NaN, FLAG_NO_EVENTS; in a patch in the paper
+    # rig's blind band (5 lux) its neighbours' fits say silence is likely: estimated
+    rig = Rig(l_const=10.0, contrast_ratio_1=1000.0, contrast_ratio_2=1000.0)
+    sensor = dataclasses.replace(get_preset("ideal"), dead_pixel_fraction=0.05)
+    scene = np.full((12, 24), 1000.0)
+    scene[:, 12:] = 15.0  # two events or more: fitted, the blind band's neighbours
+    scene[4:8, 16:20] = 5.0
+    rec = simulate(scene, rig=rig, sensor=sensor, n_cycles=2, rng=0, sensor_seed=3)
+    out: dict = {}
+    img = reconstruct(rec, method="ml", ml_options={"out": out})[-1]
+    n, fl = out["n_events"][-1], out["flags"][-1]
+    bright = (n == 0) & (scene == 1000.0)
+    assert bright.sum() >= 3
+    assert np.all(fl[bright] == ml.FLAG_NO_EVENTS) and np.isnan(img[bright]).all()
+    band = scene == 5.0
+    assert np.all(n[band] == 0) and np.all(fl[band] == ml.FLAG_FEW_EVENTS)
+    assert np.all(np.abs(np.log(img[band] / 5.0)) < 2.0 * out["sigma_log"][-1][band])
+    # the same silence with no dead pixels in the sensor's model: estimated everywhere
+    out2: dict = {}
+    reconstruct(rec, method="ml", ml_options={"out": out2,
+                                               "sensor": get_preset("ideal")})
+    assert np.all(out2["flags"][-1][bright] == ml.FLAG_FEW_EVENTS)
 
 
 def test_pixels_beyond_the_range_hold_its_bound_and_are_flagged() -> None:

@@ -48,8 +48,11 @@ photoreceptor's state at the cycle start is the periodic steady state (two cycle
 integrated); the readout's queueing delays (the arbiter) and hot pixels are not modelled;
 crossings that the jitter clamps to the end of a dead time are treated as unclamped.
 
-Pixels without events carry no information: NaN, flag :data:`FLAG_NO_EVENTS`; nor do
-pixels whose estimate is uncertain to a factor e or more (:data:`FLAG_UNINFORMED`). Pixels
+A pixel with fewer than two events is not fitted; its estimate is the mean of ``ln L``
+under the likelihood of so few events (:data:`FLAG_FEW_EVENTS`): silence is likeliest
+where the signal swings least, near ``L_const``, and a dead pixel explains it too, at the
+sensor's share of them (then NaN, flag :data:`FLAG_NO_EVENTS`). Pixels whose estimate is
+uncertain to a factor e or more carry no information (NaN, :data:`FLAG_UNINFORMED`). Pixels
 whose estimate reaches a bound of the model's radiance range are flagged
 :data:`FLAG_OUT_OF_RANGE` and hold the bound (brighter than the range: its top, as a
 camera's saturated pixel; darker: its bottom); their standard deviation is NaN. The mask
@@ -79,6 +82,7 @@ from asynhdr.sensor.photoreceptor import Lowpass, lowpass_rows, time_grid
 
 __all__ = [
     "DEFAULT_DLOG",
+    "FLAG_FEW_EVENTS",
     "FLAG_FILLED",
     "FLAG_NO_EVENTS",
     "FLAG_OUT_OF_RANGE",
@@ -97,6 +101,7 @@ __all__ = [
     "reconstruct_ml",
     "sensor_of",
     "thresholds_prior",
+    "valid_flags",
 ]
 
 logger = logging.getLogger(__name__)
@@ -115,7 +120,9 @@ RANGE_MARGIN = 100.0
 
 FLAG_NO_EVENTS = 1
 """Flag: the pixel fired fewer than ``min_events`` events in the window (two by default:
-the first event's reference is unknown, so one event only bounds the radiance): NaN."""
+the first event's reference is unknown, so one event alone is not fitted) and has no
+estimate from so few (:data:`FLAG_FEW_EVENTS`): its silence is likelier a dead pixel's, or
+no radiance explains its one event: NaN."""
 FLAG_OUT_OF_RANGE = 2
 """Flag: the estimate reached a bound of the model's radiance range: the pixel is at least
 as bright as the upper bound (or at most as dark as the lower), and the image holds that
@@ -127,6 +134,11 @@ where it is infinite: a profile without curvature)."""
 FLAG_FILLED = 8
 """Flag (with :data:`FLAG_NO_EVENTS`): a dead pixel of the calibration's map, given the
 median of its measured neighbours (:func:`asynhdr.defects.fill_defects`); no deviation."""
+FLAG_FEW_EVENTS = 16
+"""Flag: the pixel fired fewer than two events, and the estimate is the mean of ``ln L``
+under the likelihood of so few (:func:`_sparse_kernel`; near ``L_const`` the signal swings
+least, so silence is likeliest there): an estimate with its deviation, in the mask. With
+:data:`FLAG_UNINFORMED`: that likelihood fixes ``L`` to no better than a factor e: NaN."""
 
 _MAX_ITER = 16
 _TOL_G = 1e-3
@@ -189,6 +201,16 @@ class MlModel:
         within 1 % of the largest: ``split_us`` for one trip; for two, the first trip's
         turn, where the net change counts half the events (its error from the thresholds'
         mismatch is half as large). A fit starts from the better of the two.
+    ext_t, ext, ext_g : the extremes of ``V`` that a pixel with fewer than two events is
+        estimated from (:func:`_sparse_kernel`): the times (µs, from 0 to the last slot's
+        crossing time) between which ``V`` is monotone or linear for every ``g`` (the
+        waveforms' knots, or the table's times), and at each the running maximum and
+        minimum of ``V`` from the window's start and to its end, ``(4, n_times, n_g)``
+        float32, for ``g`` on the grid ``ext_g`` (the table's rows in mode 1).
+    latency_us, refractory_us : the sensor's (a crossing precedes its stamp by the
+        latency; the dead time ends a refractory period after the stamp).
+    dead_fraction : the sensor's share of pixels that never fire: the other explanation of
+        a silent pixel.
     """
 
     window_us: int
@@ -211,11 +233,18 @@ class MlModel:
     split_us: int
     split2_us: int
     net_v2: np.ndarray
+    ext_t: np.ndarray
+    ext: np.ndarray
+    ext_g: np.ndarray
+    latency_us: float
+    refractory_us: float
+    dead_fraction: float
     description: str = ""
 
     @property
     def n_bytes(self) -> int:
-        return int(self.exact.nbytes + self.rows.nbytes + self.locate.nbytes)
+        return int(self.exact.nbytes + self.rows.nbytes + self.locate.nbytes
+                   + self.ext.nbytes)
 
 
 def _noise_rate_hz(sensor: SensorParams) -> float:
@@ -312,8 +341,16 @@ def ml_model(rig: Rig, sensor: SensorParams, *, window_us: float | None = None,
     common = dict(window_us=w_us, g_lo=g_lo, g_hi=g_hi, dead=dead,
                   reset_sigma=float(sensor.reset_noise_sigma),
                   jitter_us=float(sensor.jitter_sigma_us), res_us=res,
-                  noise_rate_per_us=_noise_rate_hz(sensor) * 1e-6, exact=exact, v0=v0)
+                  noise_rate_per_us=_noise_rate_hz(sensor) * 1e-6, exact=exact, v0=v0,
+                  latency_us=lat, refractory_us=refr,
+                  dead_fraction=float(sensor.dead_pixel_fraction))
+    t_end = float(tc[-1])
     if sensor.cutoff_hz <= 0:
+        xg = np.arange(g_lo, g_hi + 0.5 * dlog, dlog)
+        xt = _node_times(ks, t_end)
+        xv = np.log(np.interp(xt, ks, a1k)[:, None] * np.exp(xg)[None, :]
+                    + np.interp(xt, ks, b2k)[:, None])
+        common.update(ext_t=xt, ext=_extremes(xv), ext_g=xg)
         ng = np.linspace(g_lo, g_hi, 512)
         e = np.exp(ng)
         slots = np.unique(np.append(np.arange(0, w_us, max(1, w_us // _SPLIT_TIMES)),
@@ -373,6 +410,9 @@ def ml_model(rig: Rig, sensor: SensorParams, *, window_us: float | None = None,
     keep = decimate_grid(s, rows, TABLE_TOL)
     s = s[keep]
     rows = rows[:, keep]
+    xt = _node_times(s, t_end)
+    xv = np.stack([np.interp(xt, s, r) for r in rows], axis=1)
+    common.update(ext_t=xt, ext=_extremes(xv), ext_g=g_lo + dlog * np.arange(n_rows))
     kmax = s.size - 2
     kc, fc, hc = loc(tc)
     ke, fe, he = loc(te)
@@ -389,6 +429,20 @@ def ml_model(rig: Rig, sensor: SensorParams, *, window_us: float | None = None,
                    split_us=nvs[0][1], net_v2=nvs[1][0], split2_us=nvs[1][1],
                    description=f"photoreceptor low-pass tabulated ({n_rows} radiances x "
                    f"{s.size} times)", **common)  # type: ignore[arg-type]
+
+
+def _node_times(knots: np.ndarray, t_end: float) -> np.ndarray:
+    """The times of ``knots`` inside ``(0, t_end)``, with 0 and ``t_end``."""
+    k = np.asarray(knots, dtype=np.float64)
+    return np.unique(np.concatenate([[0.0], k[(k > 0.0) & (k < t_end)], [t_end]]))
+
+
+def _extremes(v: np.ndarray) -> np.ndarray:
+    """``(4, n_times, n_g)`` float32: the running maximum and minimum of ``v`` (``(n_times,
+    n_g)``) from the first time to each, then from each to the last."""
+    return np.stack([np.maximum.accumulate(v, axis=0), np.minimum.accumulate(v, axis=0),
+                     np.maximum.accumulate(v[::-1], axis=0)[::-1],
+                     np.minimum.accumulate(v[::-1], axis=0)[::-1]]).astype(np.float32)
 
 
 def decimate_grid(s: np.ndarray, rows: np.ndarray, tol: float) -> np.ndarray:
@@ -1695,6 +1749,223 @@ def _neighbour_starts(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b
     return n_moved.sum()
 
 
+# ----------------------------------------------------------------------------- few events
+
+
+@nb.njit(cache=True, inline="always", error_model="numpy")
+def _cdf(z):
+    return 0.5 * math.erfc(-z * 0.7071067811865476)
+
+
+@nb.njit(cache=True, inline="always", error_model="numpy")
+def _node_at(ext_t, x):
+    """Index of the last of the times ``ext_t`` at or before ``x`` (0 before the first)."""
+    lo = 0
+    hi = ext_t.shape[0] - 1
+    if x >= ext_t[hi]:
+        return hi
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if ext_t[mid] <= x:
+            lo = mid
+        else:
+            hi = mid
+    return lo
+
+
+@nb.njit(cache=True, inline="always", error_model="numpy")
+def _silence(ext, j, c1, c2, s1, s2, u_sd):
+    """The probability that grid row ``j``'s signal fires no event in the window. The start
+    offset uniform over ``(-c_on, c_off)``: ``E[(C - swing)+] / C`` with ``C = c_on + c_off``
+    Gaussian (its mean in the denominator, or the swing where that is larger: where the
+    mass lies); settled (``u_sd > 0``): neither threshold reached from ``V(0)``."""
+    last = ext.shape[1] - 1
+    vmax = ext[0, last, j]
+    vmin = ext[1, last, j]
+    if u_sd > 0.0:
+        v0 = ext[0, 0, j]
+        return (_cdf((c1 - (vmax - v0)) / math.sqrt(s1 * s1 + u_sd * u_sd))
+                * _cdf((c2 - (v0 - vmin)) / math.sqrt(s2 * s2 + u_sd * u_sd)))
+    mu = c1 + c2
+    sd = math.sqrt(s1 * s1 + s2 * s2)
+    sw = vmax - vmin
+    if sd > 0.0:
+        z = (mu - sw) / sd
+        exc = sd * math.exp(-0.5 * z * z) * 0.3989422804014327 + (mu - sw) * _cdf(z)
+    else:
+        exc = max(mu - sw, 0.0)
+    return exc / max(mu, sw)
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _one_event(m, sg, ext, ext_t, j, jj, ww, e, mode, exact, v0a, v0b, rows, dlog, locate,
+               tc_off, te_off, t_end, s_t, sr2, c1, c2, s1, s2, u_sd):
+    """The density (per µs) that grid row ``j``'s signal fires one event, of sign ``sg``, in
+    whole µs slot ``m`` and none else in the window: its crossing is the signal's first
+    exit from the band (a new extreme, the other threshold not reached before), after the
+    dead time's reset none follows. In ``W = sg V``, with ``a`` the threshold crossed."""
+    if sg > 0:
+        ca, cb, sa, sb, ia, ib = c1, c2, s1, s2, 0, 1
+    else:
+        ca, cb, sa, sb, ia, ib = c2, c1, s2, s1, 1, 0
+    n = ext_t.shape[0]
+    vc, _, dvt = _eval(mode, jj, ww, e, m, False, exact, v0a, v0b, rows, dlog, locate)
+    wc = sg * vc
+    wd = sg * dvt
+    if not wd > 0.0:
+        return 0.0
+    w0 = sg * ext[0, 0, j]
+    tc = max(m + tc_off, 0.0)
+    # a new extreme: above every earlier value, up to the timing's spread before it
+    back = int(math.ceil(2.0 * s_t)) + 1  # noqa: RUF046 (numba)
+    w_prev = w0
+    if m - back >= 0:
+        vp, _, _ = _eval(mode, jj, ww, e, m - back, False, exact, v0a, v0b, rows, dlog,
+                         locate)
+        i = _node_at(ext_t, max(m - back + tc_off, 0.0))
+        w_prev = max(sg * vp, sg * ext[ia, i, j])
+    first = _cdf((wc - w_prev) / (wd * s_t + 1e-12))
+    i = _node_at(ext_t, tc)
+    w_low = min(wc, sg * ext[ib, i, j])
+    if u_sd > 0.0:
+        va = sa * sa + u_sd * u_sd
+        d = wc - w0 - ca
+        dens = wd * math.exp(-0.5 * d * d / va) / math.sqrt(2.0 * math.pi * va)
+        other = _cdf((cb - (w0 - w_low)) / math.sqrt(sb * sb + u_sd * u_sd))
+    else:
+        mu = ca + cb
+        dens = wd / mu
+        other = _cdf((mu - (wc - w_low)) / max(math.sqrt(sa * sa + sb * sb), 1e-6))
+    # after the reset: the signal stays within both thresholds to the window's end
+    after = 1.0
+    te = m + te_off
+    if te < t_end:
+        ve, _, _ = _eval(mode, jj, ww, e, m, True, exact, v0a, v0b, rows, dlog, locate)
+        we = sg * ve
+        i = _node_at(ext_t, te) + 1
+        w_hi = we
+        w_lo = we
+        if i < n:
+            if sg > 0:
+                w_hi = max(we, ext[2, i, j])
+                w_lo = min(we, ext[3, i, j])
+            else:
+                w_hi = max(we, -ext[3, i, j])
+                w_lo = min(we, -ext[2, i, j])
+        after = (_cdf((ca - (w_hi - we)) / math.sqrt(sa * sa + sr2 + 1e-12))
+                 * _cdf((cb - (we - w_lo)) / math.sqrt(sb * sb + sr2 + 1e-12)))
+    return dens * first * other * after
+
+
+_SILENT_SWEEPS = 8
+"""At most this many passes of :func:`_sparse_kernel`, each over the silent pixels the
+last left without an estimate."""
+_SILENT_PRIOR_SD = 0.5
+"""The least spread (``ln L``) of the neighbours' prior that weighs a silent pixel's
+silence against a dead pixel (:func:`_sparse_kernel`)."""
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _neighbour_median(px, width, fit_g, fit_flag):
+    """The median of pixel ``px``'s 8 neighbours' estimates (flag 0 or
+    :data:`FLAG_FEW_EVENTS`) and their spread (1.4826 times the median absolute
+    deviation); NaN with fewer than 3."""
+    npx = fit_g.shape[0]
+    height = npx // width
+    y = px // width
+    xx = px - y * width
+    ng = np.empty(8)
+    k = 0
+    for dy in range(-1, 2):
+        for dx in range(-1, 2):
+            yy = y + dy
+            x2 = xx + dx
+            if (dy == 0 and dx == 0) or yy < 0 or yy >= height or x2 < 0 or x2 >= width:
+                continue
+            q = yy * width + x2
+            if fit_flag[q] == 0 or fit_flag[q] == FLAG_FEW_EVENTS:
+                ng[k] = fit_g[q]
+                k += 1
+    if k < 3:
+        return np.nan, np.nan
+    med = np.median(ng[:k])
+    for j in range(k):
+        ng[j] = abs(ng[j] - med)
+    return med, 1.4826 * np.median(ng[:k])
+
+
+@nb.njit(cache=True, parallel=True, error_model="numpy")
+def _sparse_kernel(todo, off, t, p, mode, exact, v0a, v0b, rows, g0, dlog, locate, wmax,
+                   ext_t, ext, ext_g, tc_off, te_off, tq2, sr2, lam, con0, coff0, scon,
+                   scoff, u_sd, dead_fraction, width, fit_g, fit_flag, out_g, out_sd,
+                   out_flag):
+    """Pixels ``todo`` (fewer than two events: none, or one) estimated from the likelihood
+    of so few events on the grid ``ext_g`` of ``ln L`` (flat prior over the model's
+    range): its mean and standard deviation (with the grid's step). No event: the silence
+    (:func:`_silence`), which a dead pixel explains too (``dead_fraction`` of all): the
+    pixel keeps no estimate where that is likelier. The silence's evidence is weighed
+    with the pixel's 8 neighbours' estimates (``fit_g`` where ``fit_flag`` is 0 or
+    :data:`FLAG_FEW_EVENTS`) as the prior of ``ln L``, Gaussian about their median, of
+    their spread and at least :data:`_SILENT_PRIOR_SD` (with fewer than 3 such
+    neighbours, flat over the range): a silent pixel among neighbours near ``L_const`` is
+    likely working, one in a patch far from it likely dead. The estimate itself is the
+    silence's alone. One event: its density
+    (:func:`_one_event`), or a background event (rate ``lam`` per µs) and silence. Flags
+    :data:`FLAG_FEW_EVENTS` (with :data:`FLAG_UNINFORMED` where the deviation is 1 or more);
+    the pixels whose events no ``g`` explains keep :data:`FLAG_NO_EVENTS`."""
+    ng = ext_g.shape[0]
+    t_end = ext_t[ext_t.shape[0] - 1]
+    s_t = math.sqrt(tq2)
+    for q in nb.prange(todo.shape[0]):
+        px = todo[q]
+        lo = off[px]
+        n = off[px + 1] - lo
+        c1 = con0[px]
+        c2 = coff0[px]
+        s1 = scon[px]
+        s2 = scoff[px]
+        z = 0.0
+        m1 = 0.0
+        m2 = 0.0
+        for j in range(ng):
+            g = ext_g[j]
+            jj, ww, e = _at_g(mode, g, g0, dlog, rows.shape[1])
+            pr = _silence(ext, j, c1, c2, s1, s2, u_sd)
+            if n == 1:
+                m = min(t[lo], wmax - 1)
+                sg = 1.0 if p[lo] > 0 else -1.0
+                pr = lam * pr + _one_event(m, sg, ext, ext_t, j, jj, ww, e, mode, exact, v0a,
+                                           v0b, rows, dlog, locate, tc_off, te_off, t_end,
+                                           s_t, sr2, c1, c2, s1, s2, u_sd)
+            if not pr > 0.0:
+                continue
+            z += pr
+            m1 += pr * g
+            m2 += pr * g * g
+        if not z > 0.0:
+            continue
+        if n == 0 and dead_fraction > 0.0:
+            evidence = z / ng
+            med, spread = _neighbour_median(px, width, fit_g, fit_flag)
+            if med == med:
+                sp = max(spread, _SILENT_PRIOR_SD)
+                evidence = 0.0
+                for j in range(ng):
+                    d = (ext_g[j] - med) / sp
+                    if d * d < 50.0:
+                        evidence += (_silence(ext, j, c1, c2, s1, s2, u_sd)
+                                     * math.exp(-0.5 * d * d))
+                evidence *= (ext_g[1] - ext_g[0]) / (sp * 2.5066282746310002)
+            if (1.0 - dead_fraction) * evidence <= dead_fraction:
+                continue
+        mean = m1 / z
+        step = ext_g[1] - ext_g[0] if ng > 1 else 0.0
+        var = max(m2 / z - mean * mean, 0.0) + step * step / 12.0
+        out_g[px] = mean
+        out_sd[px] = math.sqrt(var)
+        out_flag[px] = FLAG_FEW_EVENTS | (FLAG_UNINFORMED if var >= _VAR_INFORMED else 0)
+
+
 # ----------------------------------------------------------------------------- grouping
 
 
@@ -1779,8 +2050,16 @@ class MlResult:
 
     @property
     def mask(self) -> np.ndarray:
-        """True where the pixel has an estimate inside the model's range."""
-        return self.flags == 0
+        """True where the pixel has an estimate inside the model's range (from its fit, or
+        from how few events it fired: :data:`FLAG_FEW_EVENTS`)."""
+        return valid_flags(self.flags)
+
+
+def valid_flags(flags: np.ndarray) -> np.ndarray:
+    """True where ``flags`` (:class:`MlResult`'s) mark an estimate inside the model's range:
+    a fit (0) or an estimate from fewer than two events (:data:`FLAG_FEW_EVENTS`)."""
+    f = np.asarray(flags)
+    return (f == 0) | (f == FLAG_FEW_EVENTS)
 
 
 def thresholds_prior(sensor: SensorParams, *, width: int, height: int,
@@ -1887,11 +2166,16 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
          g_prior: np.ndarray | None, sg_prior: np.ndarray | None, fixed: bool,
          min_events: int = 2, start_sigma: float = 0.0,
          progress: Callable[[int], None] | None = None,
-         width: int = 0, threshold_sd: bool = False) -> tuple[np.ndarray, ...]:
+         width: int = 0, neighbours: bool = True, threshold_sd: bool = False,
+         dead_fraction: float | None = None) -> tuple[np.ndarray, ...]:
     """Every pixel's fit (:func:`_estimate_kernel`); ``progress(pixels_done)`` after each
     of :data:`_PROGRESS_PARTS` parts when given (the same fits, part by part). With
-    ``width`` (the pixels an image of that width), the neighbours' fits are tried as
-    further starts (:func:`_neighbour_starts`), unless ``g`` has a prior or ``fixed``.
+    ``width`` (the pixels an image of that width) and ``neighbours``, the neighbours' fits
+    are tried as further starts (:func:`_neighbour_starts`), unless ``g`` has a prior or
+    ``fixed``;
+    then the pixels with fewer than two events are estimated from how few they fired
+    (:func:`_sparse_kernel`; ``dead_fraction``: the share of dead pixels, default the
+    model's).
     Returns ``(g, sd, c_on, c_off, flag, counts)``, and with ``threshold_sd`` the
     thresholds' posterior standard deviations (:func:`_threshold_sd_kernel`) after them."""
     con, coff, scon, scoff = (np.ascontiguousarray(a) for a in priors)
@@ -1922,7 +2206,8 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
                          out_u[a:b])
         if progress is not None:
             progress(b)
-    if width > 0 and not fixed and not np.any(sp > 0.0) and npx % width == 0:
+    image = width > 0 and npx % width == 0
+    if neighbours and image and not fixed and not np.any(sp > 0.0):
         todo = np.ones(npx, np.uint8)
         for _ in range(_NEIGHBOUR_SWEEPS):
             moved = np.zeros(npx, np.uint8)
@@ -1944,6 +2229,28 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
                     np.maximum(todo, m[dy:dy + m.shape[0] - 2, dx:dx + m.shape[1] - 2],
                                out=todo)
             todo = todo.ravel()
+    if not fixed and not np.any(sp > 0.0):
+        few = np.flatnonzero(counts < min(min_events, 2)).astype(np.int64)
+        for _ in range(_SILENT_SWEEPS):
+            if not few.size:
+                break
+            # each sweep reads the estimates as they stood: the next one reaches the
+            # silent pixels whose neighbours the last one estimated (a silent patch, from
+            # its edge inwards)
+            _sparse_kernel(few, off, t, p, model.mode, model.exact, model.v0[0], model.v0[1],
+                           model.rows, model.g0, model.dlog, model.locate,
+                           np.int64(model.window_us), model.ext_t, model.ext, model.ext_g,
+                           0.5 * model.res_us - model.latency_us,
+                           0.5 * model.res_us + model.refractory_us, tq2,
+                           model.reset_sigma ** 2, model.noise_rate_per_us, con, coff, scon,
+                           scoff, float(start_sigma),
+                           model.dead_fraction if dead_fraction is None else dead_fraction,
+                           np.int64(width if image else npx),
+                           out_g.copy(), out_flag.copy(), out_g, out_sd, out_flag)
+            left = few[out_flag[few] == FLAG_NO_EVENTS]
+            if left.size == few.size:
+                break
+            few = left[counts[left] == 0]
     if threshold_sd:
         son = np.empty(npx)
         soff = np.empty(npx)
@@ -1973,6 +2280,7 @@ def estimate(
     pixel_progress: Callable[[int, int], None] | None = None,
     neighbours: bool = True,
     threshold_sd: bool = False,
+    dead_fraction: float | None = None,
 ) -> MlResult:
     """Maximum-likelihood radiance per pixel and cycle.
 
@@ -1996,6 +2304,10 @@ def estimate(
         A fit's start, not a smoothing: each pixel's estimate is its own events' fit.
     threshold_sd : also the thresholds' posterior standard deviations (``sd_on``,
         ``sd_off``: one more pass over each fitted pixel's events).
+    dead_fraction : the share of pixels that never fire, against which a silent pixel's
+        estimate from its silence (:data:`FLAG_FEW_EVENTS`) is weighed; default the
+        sensor's (:attr:`MlModel.dead_fraction`); 0 where a calibration's map names the
+        dead pixels.
     """
     starts = np.asarray(starts_us, dtype=np.int64)
     npx = width * height
@@ -2018,14 +2330,14 @@ def estimate(
                 pixel_progress(c * npx + done, n * npx)
         g, s, c1, c2, fl, counts, *tsd = _run(
             model, off, t, p, npx, priors, g_prior, g_prior_sigma, False, min_events,
-            start_sigma, progress=step, width=width if neighbours else 0,
-            threshold_sd=threshold_sd)
+            start_sigma, progress=step, width=width, neighbours=neighbours,
+            threshold_sd=threshold_sd, dead_fraction=dead_fraction)
         if sd_on is not None and sd_off is not None:
             sd_on[c] = tsd[0].reshape(height, width)
             sd_off[c] = tsd[1].reshape(height, width)
         with np.errstate(over="ignore"):
             r = np.exp(g)  # a pixel out of the range keeps the bound it reached
-        r[(fl == FLAG_NO_EVENTS) | (fl == FLAG_UNINFORMED)] = np.nan
+        r[(fl & (FLAG_NO_EVENTS | FLAG_UNINFORMED)) != 0] = np.nan
         # no deviation where there is no estimate, and none where the likelihood's profile
         # has no curvature to give one (an infinite deviation: no information)
         s[(fl == FLAG_NO_EVENTS) | (fl == FLAG_OUT_OF_RANGE) | ~np.isfinite(s)] = np.nan
@@ -2039,11 +2351,13 @@ def estimate(
             progress(c + 1, n)
     n_none = int(np.count_nonzero(flags == FLAG_NO_EVENTS))
     n_out = int(np.count_nonzero(flags == FLAG_OUT_OF_RANGE))
-    n_vague = int(np.count_nonzero(flags == FLAG_UNINFORMED))
-    if n_none or n_out or n_vague:
-        logger.info("ml: %d pixel-cycles without events and %d whose events fix L to no "
-                    "better than a factor e: NaN; %d at a bound of the model's range "
-                    "(%.3g to %.3g): the bound", n_none, n_vague, n_out,
+    n_vague = int(np.count_nonzero(flags & FLAG_UNINFORMED))
+    n_few = int(np.count_nonzero(flags == FLAG_FEW_EVENTS))
+    if n_none or n_out or n_vague or n_few:
+        logger.info("ml: %d pixel-cycles without an estimate from fewer than two events, "
+                    "and %d whose events fix L to no better than a factor e: NaN; %d "
+                    "estimated from fewer than two events; %d at a bound of the model's "
+                    "range (%.3g to %.3g): the bound", n_none, n_vague, n_few, n_out,
                     math.exp(model.g_lo), math.exp(model.g_hi))
     return MlResult(radiance=rad, sigma_log=sd, flags=flags, c_on=con, c_off=coff,
                     n_events=nev, sd_on=sd_on, sd_off=sd_off)
@@ -2150,11 +2464,13 @@ def reconstruct_ml(
     sigma)`` maps (a calibration file); else a c-map ``cmap`` scales the nominal
     thresholds (spread 0.01), else the nominal ones with the sensor's mismatch as their
     spread. ``defects``: a calibration's map of dead pixels ``(height, width)``: those
-    without an estimate get the median of their measured neighbours
-    (:data:`FLAG_FILLED`). ``out`` receives ``sigma_log``, ``flags``, ``c_on``, ``c_off``
-    and ``n_events`` (:class:`MlResult`'s fields). ``settled_start``: the pixels start the
-    window at rest on their reference (a single ramp from a closed shutter): the start
-    offset is then known to the reset noise (or 0.02) and one event suffices.
+    without an estimate (or silent) get the median of their measured neighbours
+    (:data:`FLAG_FILLED`), and a silent pixel outside the map is taken to be working
+    (its silence estimates it, :data:`FLAG_FEW_EVENTS`). ``out`` receives ``sigma_log``,
+    ``flags``, ``c_on``, ``c_off`` and ``n_events`` (:class:`MlResult`'s fields).
+    ``settled_start``: the pixels start the window at rest on their reference (a single
+    ramp from a closed shutter): the start offset is then known to the reset noise (or
+    0.02) and one event suffices.
     ``progress(stage, done, total)`` reports the fits as they go, in pixel-cycles
     (``stage``: "ml: pixels fitted", or "ml: pixels this cycle" for a single window).
     ``neighbours``: :func:`estimate`'s further starts from the neighbours' fits.
@@ -2190,7 +2506,8 @@ def reconstruct_ml(
     stage = "ml: pixels fitted" if len(starts) > 1 else "ml: pixels this cycle"
     n_min = (1 if settled_start else 2) if min_events is None else int(min_events)
     kw: dict[str, Any] = dict(width=w, height=h, model=model, min_events=n_min,
-                              start_sigma=start_sigma, neighbours=neighbours)
+                              start_sigma=start_sigma, neighbours=neighbours,
+                              dead_fraction=None if defects is None else 0.0)
     if thresholds is None and cmap is None and learn and sensor.threshold_sigma > 0:
         own = learner is None
         learner = LearnedThresholds() if learner is None else learner
@@ -2220,6 +2537,11 @@ def reconstruct_ml(
         if dead.shape != (h, w):
             raise ValueError(f"ml: the defect map is {dead.shape}, the recording {(h, w)}")
         for c in range(res.radiance.shape[0]):
+            # a dead pixel's silence is no estimate from silence
+            silent = dead & (res.n_events[c] == 0)
+            res.radiance[c][silent] = np.nan
+            res.sigma_log[c][silent] = np.nan
+            res.flags[c][silent] = FLAG_NO_EVENTS
             res.radiance[c], filled = fill_defects(res.radiance[c], dead)
             res.flags[c][filled] |= FLAG_FILLED
     if out is not None:

@@ -92,10 +92,10 @@ class MlOutputs:
         import cv2
 
         from asynhdr._atomic import atomic_path
-        from asynhdr.ml import FLAG_FILLED
+        from asynhdr.ml import FLAG_FILLED, valid_flags
 
         self.filled = int(np.count_nonzero(flags[0] & FLAG_FILLED))
-        valid = np.where(flags[0] == 0, 255, 0).astype(np.uint8)
+        valid = np.where(valid_flags(flags[0]), 255, 0).astype(np.uint8)
         with atomic_path(Path(f"{stem}_valid.png")) as tmp:
             if not cv2.imwrite(str(tmp), valid):
                 raise OSError(f"{stem}_valid.png: OpenCV failed to write the mask")
