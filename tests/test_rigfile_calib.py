@@ -495,6 +495,16 @@ def test_design_prediction_counts_the_readout_queue() -> None:
     assert lumped.max_delay_us > even.max_delay_us > 0.0
     assert np.nanmax(np.abs(lumped.bias)) > MAX_BIAS
     assert even.run(20.0)[0] >= lumped.run(20.0)[0] + 30.0
+    # the queue delays each pixel's events by its own amounts: the spread of ml's error
+    # over a level's pixels adds to the bound in quadrature (the same events before the
+    # readout, so the same bound)
+    assert free.queue_sd is not None and lumped.queue_sd is not None
+    assert np.all(free.queue_sd == 0.0) and np.nanmax(lumped.queue_sd) > 0.01
+    ok = np.isfinite(free.snr_db) & np.isfinite(lumped.snr_db)
+    bound = 10.0 ** (-free.snr_db[ok] / 20.0)
+    np.testing.assert_allclose(lumped.snr_db[ok],
+                               -20.0 * np.log10(np.hypot(bound, lumped.queue_sd[ok])),
+                               rtol=1e-9)
     with pytest.raises(ValueError, match="uniform_share"):
         predict(rig, imx, levels=levels, uniform_share=1.0)
 
