@@ -37,6 +37,11 @@ class MlOutputs:
         self.thresholds = thresholds
         self.defects = defects
         self.filled = 0  # dead pixels filled in the last cycle written
+        # the last cycle written: its pixels with an estimate, those of them from fewer
+        # than two events, and all its pixels
+        self.valid = 0
+        self.few = 0
+        self.pixels = 0
         self.active = method == "ml"
         self.formats = formats
         self.extra: dict[str, Any] = {}
@@ -92,10 +97,14 @@ class MlOutputs:
         import cv2
 
         from asynhdr._atomic import atomic_path
-        from asynhdr.ml import FLAG_FILLED, valid_flags
+        from asynhdr.ml import FLAG_FEW_EVENTS, FLAG_FILLED, valid_flags
 
         self.filled = int(np.count_nonzero(flags[0] & FLAG_FILLED))
-        valid = np.where(valid_flags(flags[0]), 255, 0).astype(np.uint8)
+        ok = valid_flags(flags[0])
+        self.valid = int(np.count_nonzero(ok))
+        self.few = int(np.count_nonzero(flags[0] == FLAG_FEW_EVENTS))
+        self.pixels = int(ok.size)
+        valid = np.where(ok, 255, 0).astype(np.uint8)
         with atomic_path(Path(f"{stem}_valid.png")) as tmp:
             if not cv2.imwrite(str(tmp), valid):
                 raise OSError(f"{stem}_valid.png: OpenCV failed to write the mask")
