@@ -1927,13 +1927,13 @@ def _sparse_kernel(todo, off, t, p, mode, exact, v0a, v0b, rows, g0, dlog, locat
         z = 0.0
         m1 = 0.0
         m2 = 0.0
+        m = min(t[lo], wmax - 1) if n == 1 else 0
+        sg = 1.0 if n == 1 and p[lo] > 0 else -1.0
         for j in range(ng):
             g = ext_g[j]
             jj, ww, e = _at_g(mode, g, g0, dlog, rows.shape[1])
             pr = _silence(ext, j, c1, c2, s1, s2, u_sd)
             if n == 1:
-                m = min(t[lo], wmax - 1)
-                sg = 1.0 if p[lo] > 0 else -1.0
                 pr = lam * pr + _one_event(m, sg, ext, ext_t, j, jj, ww, e, mode, exact, v0a,
                                            v0b, rows, dlog, locate, tc_off, te_off, t_end,
                                            s_t, sr2, c1, c2, s1, s2, u_sd)
