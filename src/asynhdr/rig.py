@@ -156,21 +156,25 @@ class Rig:
                                  f"{self.design_range!r}")
             object.__setattr__(self, "design_range", (lo, hi))
 
+    def working_range(self) -> tuple[float, float]:
+        """The radiances ``(lowest, highest)`` the rig works for: :attr:`design_range` for a
+        designed rig; else, for the paper's rig, ``L_const`` (below which pixels only see
+        the reference fall) to ``L_const CR_1`` (above which the scene dominates from the
+        start), and for a rig with its own waveforms ``L_const T2 / T1`` over the ramp's
+        extremes."""
+        if self.design_range is not None:
+            return self.design_range
+        if self.t1 is None:
+            return self.l_const, self.l_const * self.contrast_ratio_1
+        w1, w2 = self.waveforms()
+        return (self.l_const * float(w2.values.min()) / float(w1.values.max()),
+                self.l_const * float(w2.values.max()) / float(w1.values.min()))
+
     def mid_radiance(self) -> float:
         """The radiance at the middle of the rig's working range, where automatic exposure
         puts a scene's log-average (:func:`asynhdr.scene.exposure_scale`): the geometric
-        middle of :attr:`design_range` for a designed rig; else, for the paper's rig,
-        ``L_const sqrt(CR_1)`` (between ``L_const``, below which pixels only see the
-        reference fall, and ``L_const CR_1``, above which the scene dominates from the
-        start), and for a rig with its own waveforms the geometric middle of
-        ``L_const T2 / T1`` over the ramp's extremes."""
-        if self.design_range is not None:
-            return math.sqrt(self.design_range[0] * self.design_range[1])
-        if self.t1 is None:
-            return self.l_const * math.sqrt(self.contrast_ratio_1)
-        w1, w2 = self.waveforms()
-        lo = self.l_const * float(w2.values.min()) / float(w1.values.max())
-        hi = self.l_const * float(w2.values.max()) / float(w1.values.min())
+        middle of :meth:`working_range` (``L_const sqrt(CR_1)`` for the paper's rig)."""
+        lo, hi = self.working_range()
         return math.sqrt(lo * hi)
 
     @property

@@ -143,9 +143,14 @@ def rig_toml(rig: Rig, *, sensor: SensorParams | None = None, radiance_unit: str
     ``[rig.t2]`` tables of the *transmitted* transmittance."""
     meta = rig.to_metadata()
     rig_d = {k: meta[k] for k in _RIG_KEYS if k in meta}
+    sampled = rig.t1 is not None or rig.t2 is not None or rig.panel != "ideal"
+    if sampled and rig.design_range is None:
+        # read back, the rig is its transmitted waveforms, whose extremes (a real panel's
+        # leakage and slow opening) would set another working range: keep this one
+        rig_d["design_range"] = list(rig.working_range())
     rig_d["radiance_unit"] = radiance_unit
     parts = [f'format = "{FORMAT}"\nversion = {VERSION}\n', _table("rig", rig_d, _COMMENTS)]
-    if rig.t1 is not None or rig.t2 is not None or rig.panel != "ideal":
+    if sampled:
         w1, w2 = rig.waveforms()
         for name, w in (("t1", w1), ("t2", w2)):
             parts.append(_table(f"rig.{name}", {"name": w.name, "phase": w.phase.tolist(),
