@@ -128,9 +128,11 @@ def run_preset(preset: str, *, width: int, height: int, seed: int = 0,
         img = reconstruct(rec, **kw)[-1]  # type: ignore[arg-type]
         dt = time.perf_counter() - t0
         if flags:
-            # a pixel at a bound of ml's range holds the bound: no measurement of its level
-            # (a patch there would read flat, at infinite SNR)
-            img = np.where(ml.valid_flags(flags["flags"][-1]), img, np.nan)
+            # a pixel at a bound of ml's range holds the bound, and a pixel of fewer than
+            # two events holds what its silence says (the same for every silent pixel of
+            # the same thresholds): neither measures its level by the patch's spread (a
+            # patch of them would read flat, at infinite SNR); only fits count
+            img = np.where(flags["flags"][-1] == 0, img, np.nan)
         f = chart_figures(img, scene)
         f["seconds"] = dt
         res[name] = f
