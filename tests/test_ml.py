@@ -610,3 +610,33 @@ def test_thresholds_learned_from_the_recordings_own_cycles() -> None:
     assert np.sqrt(np.nanmean(e_learned ** 2)) < np.sqrt(np.nanmean(e_plain ** 2))
     streamed = np.stack([img for _, _, img in reconstruct_cycles(rec, method="ml")])
     np.testing.assert_array_equal(streamed, learned)
+
+
+def test_cli_valid_mask_tells_fits_from_estimates_of_few_events(tmp_path) -> None:
+    # the paper's rig (L_const 10 lux) on the ideal pixel: the rows at 5 lux, in its blind
+    # band, fire nothing and are estimated from their silence (128 in _valid.png); the
+    # rows at 300 lux are fitted (255); the CLI says how many of each
+    import cv2
+    from typer.testing import CliRunner
+
+    from asynhdr.cli import _register, app
+
+    _register()
+    runner = CliRunner()
+    scene = np.full((8, 16), 300.0, np.float32)
+    scene[:4] = 5.0
+    np.save(tmp_path / "scene.npy", scene)
+    rec = tmp_path / "rec.h5"
+    r = runner.invoke(app, ["simulate", str(tmp_path / "scene.npy"), "-o", str(rec),
+                            "--preset", "ideal", "--l-const", "10", "--scale", "1",
+                            "--width", "16", "--height", "8", "--n-cycles", "2"])
+    assert r.exit_code == 0, r.output
+    out = tmp_path / "img"
+    r = runner.invoke(app, ["reconstruct", str(rec), "-o", str(out), "--method", "ml",
+                            "--formats", "exr"])
+    assert r.exit_code == 0, r.output
+    valid = cv2.imread(str(out / "rec_ml_0001_valid.png"), cv2.IMREAD_UNCHANGED)
+    assert valid.shape == (8, 16)
+    assert np.all(valid[:4] == 128) and np.all(valid[4:] == 255)
+    assert "128 of 128 pixels estimated" in " ".join(r.output.split())
+    assert "64 of them from fewer than two events" in " ".join(r.output.split())

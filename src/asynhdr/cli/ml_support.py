@@ -4,8 +4,11 @@ For ``--method ml`` each cycle writes, beside the radiance image (NaN where a pi
 information; the range's bound where the estimate reached it), ``<stem>_sigma.<ext>``:
 the standard deviation of ``ln L`` per pixel (the model's bound at the estimate), in the
 first float format asked for (``.exr`` by default), and ``<stem>_valid.png``: 255 where
-the pixel has an estimate inside the model's range, 0 where not. A calibration file's dead
-pixels are filled from their neighbours (and are 0 in ``_valid.png``).
+the pixel's events were fitted inside the model's range, 128 where its estimate comes
+from fewer than two events (:data:`asynhdr.ml.FLAG_FEW_EVENTS`: every silent pixel of the
+same thresholds reads the same, so a region's spread says nothing of their error; their
+deviation in ``_sigma`` does), 0 where it has none. A calibration file's dead pixels are
+filled from their neighbours (and are 0 in ``_valid.png``).
 """
 
 from __future__ import annotations
@@ -104,7 +107,7 @@ class MlOutputs:
         self.valid = int(np.count_nonzero(ok))
         self.few = int(np.count_nonzero(flags[0] == FLAG_FEW_EVENTS))
         self.pixels = int(ok.size)
-        valid = np.where(ok, 255, 0).astype(np.uint8)
+        valid = np.where(flags[0] == 0, 255, np.where(ok, 128, 0)).astype(np.uint8)
         with atomic_path(Path(f"{stem}_valid.png")) as tmp:
             if not cv2.imwrite(str(tmp), valid):
                 raise OSError(f"{stem}_valid.png: OpenCV failed to write the mask")

@@ -194,8 +194,8 @@ def reconstruct(
     if mlo.active and mlo.pixels:
         console.print(f"ml: {mlo.valid:,} of {mlo.pixels:,} pixels estimated in the last "
                       f"image ({100.0 * mlo.valid / mlo.pixels:.2f} %), {mlo.few:,} of them "
-                      "from fewer than two events; the rest are NaN or hold a bound of the "
-                      "model's range (0 in _valid.png)")
+                      "from fewer than two events (128 in _valid.png); the rest are NaN or "
+                      "hold a bound of the model's range (0)")
     if mlo.active and mlo.defects is not None:
         console.print(f"ml: {int(mlo.defects.sum()):,} dead pixels in the calibration; "
                       f"{mlo.filled:,} of them filled from their neighbours in the last image "
