@@ -612,6 +612,47 @@ def test_thresholds_learned_from_the_recordings_own_cycles() -> None:
     np.testing.assert_array_equal(streamed, learned)
 
 
+def test_pixels_that_learn_nothing_take_the_learned_populations_thresholds(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    # a sensor whose thresholds sit at 0.30 (mismatch 0.05) read as the IMX636 preset
+    # (nominal 0.223): the bright half's pixels learn theirs in the first cycle; the
+    # pixels near L_const (few events: they learn nothing) then take the learned
+    # population's median and spread as their prior instead of the datasheet's, and
+    # their estimates' large errors shrink (90th percentile of |error in ln L| over the
+    # last two cycles: 0.043 against 0.076)
+    rig = default_rig("imx636")
+    true = IMX636.with_(threshold_on=0.30, threshold_off=0.30)
+    w, h = 64, 48
+    scene = np.full((h, w), 1000.0)
+    scene[:, w // 2:] = rig.l_const
+    rec = simulate(scene, rig=rig, sensor=true, n_cycles=3, rng=0, sensor_seed=2)
+    near = scene == rig.l_const
+
+    def run() -> tuple[ml.LearnedThresholds, np.ndarray]:
+        lt = ml.LearnedThresholds()
+        img = reconstruct(rec, method="ml", ml_options={"sensor": IMX636, "learner": lt})
+        return lt, img
+
+    lt, img = run()
+    on, _, s_on, _ = lt.priors(IMX636, width=w, height=h)
+    assert lt.learned is not None
+    never = ~lt.learned[0]
+    assert never[near.ravel()].mean() > 0.3 and never[~near.ravel()].mean() < 0.05
+    assert np.median(on[never]) == pytest.approx(0.30, abs=0.01)
+    assert 0.03 < np.median(s_on[never]) < 0.07
+    monkeypatch.setattr(ml, "LEARN_POPULATION_MIN", 10 ** 9)
+    lt0, img0 = run()
+    assert np.median(lt0.priors(IMX636, width=w, height=h)[0][never]) == pytest.approx(
+        IMX636.threshold_on)
+
+    def p90(im: np.ndarray) -> float:
+        e = np.log(im[1:][:, near] / rig.l_const)
+        e = e[np.isfinite(e)]
+        return float(np.percentile(np.abs(e - np.median(e)), 90))
+
+    assert p90(img) < 0.8 * p90(img0)
+
+
 def test_cli_valid_mask_tells_fits_from_estimates_of_few_events(tmp_path) -> None:
     # the paper's rig (L_const 10 lux) on the ideal pixel: the rows at 5 lux, in its blind
     # band, fire nothing and are estimated from their silence (128 in _valid.png); the

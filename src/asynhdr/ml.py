@@ -89,6 +89,7 @@ __all__ = [
     "FLAG_UNINFORMED",
     "LEARN_GATE",
     "LEARN_MIN_EVENTS",
+    "LEARN_POPULATION_MIN",
     "LEARN_SD_FLOOR",
     "LearnedThresholds",
     "MlModel",
@@ -2104,6 +2105,12 @@ the prior's standard deviations of the prior's mean: a fit further off is more l
 wrong optimum than a threshold that far out."""
 
 
+LEARN_POPULATION_MIN = 100
+"""Pixels that must have learned a threshold before their population's mean and spread
+replace the sensor's nominal threshold and mismatch as the prior of the pixels that have
+not (:class:`LearnedThresholds`)."""
+
+
 class LearnedThresholds:
     """Per-pixel ON and OFF thresholds learned from a recording's own events, one cycle
     after another: the thresholds stay while the scene changes, so each cycle's fit
@@ -2115,13 +2122,26 @@ class LearnedThresholds:
     A pixel's threshold is left as it was where the cycle gave no fit, fewer than
     :data:`LEARN_MIN_EVENTS` events, or a fit that moved it further than
     :data:`LEARN_GATE` standard deviations; spreads are kept at :data:`LEARN_SD_FLOOR` or
-    more.
+    more. The pixels that have learned nothing yet (dark ones, those near ``L_const``:
+    few events) take the learned pixels' population as their prior (empirical Bayes:
+    its median, and its spread less what the learned values' own errors account for),
+    once :data:`LEARN_POPULATION_MIN` pixels have learned: a real sensor's thresholds sit
+    where its biases put them, not at a datasheet's nominal value.
 
     ``cycles``: how many cycles it has learned from."""
 
     def __init__(self) -> None:
         self.cycles = 0
         self._state: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._learned: list[np.ndarray] | None = None
+
+    @property
+    def learned(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Per pixel (flat), whether its ON and its OFF threshold have learned from a cycle
+        yet; None before the first update."""
+        if self._learned is None:
+            return None
+        return self._learned[0].copy(), self._learned[1].copy()
 
     def priors(self, sensor: SensorParams, *, width: int, height: int
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -2142,18 +2162,39 @@ class LearnedThresholds:
             raise ValueError("LearnedThresholds.update: the result has no threshold "
                              "spreads (estimate(..., threshold_sd=True))")
         m_on, m_off, s_on, s_off = self._state
+        if self._learned is None:
+            self._learned = [np.zeros(m_on.size, bool), np.zeros(m_on.size, bool)]
         enough = np.asarray(res.n_events[cycle]).ravel() >= LEARN_MIN_EVENTS
         new = []
-        for m, sd0, c, sd in ((m_on, s_on, res.c_on, res.sd_on),
-                              (m_off, s_off, res.c_off, res.sd_off)):
+        for k, (m, sd0, c, sd) in enumerate(((m_on, s_on, res.c_on, res.sd_on),
+                                             (m_off, s_off, res.c_off, res.sd_off))):
             c = np.asarray(c[cycle], dtype=np.float64).ravel()
             sd = np.asarray(sd[cycle], dtype=np.float64).ravel()
             with np.errstate(invalid="ignore"):
                 ok = (enough & np.isfinite(c) & np.isfinite(sd) & (sd > 0)
                       & (np.abs(c - m) <= LEARN_GATE * sd0))
-            new.append((np.where(ok, c, m), np.where(ok, np.maximum(sd, LEARN_SD_FLOOR), sd0)))
+            mean = np.where(ok, c, m)
+            spread = np.where(ok, np.maximum(sd, LEARN_SD_FLOOR), sd0)
+            learned = self._learned[k] | ok
+            self._learned[k] = learned
+            if np.count_nonzero(learned) >= LEARN_POPULATION_MIN:
+                mean, spread = _population_prior(mean, spread, learned)
+            new.append((mean, spread))
         self._state = (new[0][0], new[1][0], new[0][1], new[1][1])
         self.cycles += 1
+
+
+def _population_prior(mean: np.ndarray, spread: np.ndarray, learned: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """``mean`` and ``spread`` with the pixels not ``learned`` given the learned pixels'
+    population: their median, and their robust spread (1.4826 median absolute deviation)
+    less the median of their own errors in quadrature (at least
+    :data:`LEARN_SD_FLOOR`)."""
+    mu = float(np.median(mean[learned]))
+    mad = 1.4826 * float(np.median(np.abs(mean[learned] - mu)))
+    own = float(np.median(spread[learned]))
+    pop = math.sqrt(max(mad * mad - own * own, LEARN_SD_FLOOR ** 2))
+    return np.where(learned, mean, mu), np.where(learned, spread, pop)
 
 
 _PROGRESS_PARTS = 32
