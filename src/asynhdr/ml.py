@@ -2123,9 +2123,9 @@ class LearnedThresholds:
     :data:`LEARN_MIN_EVENTS` events, or a fit that moved it further than
     :data:`LEARN_GATE` standard deviations; spreads are kept at :data:`LEARN_SD_FLOOR` or
     more. The pixels that have learned nothing yet (dark ones, those near ``L_const``:
-    few events) take the learned pixels' population as their prior (empirical Bayes:
-    its median, and its spread less what the learned values' own errors account for),
-    once :data:`LEARN_POPULATION_MIN` pixels have learned: a real sensor's thresholds sit
+    few events) take the learned pixels' median as their prior's mean (empirical Bayes;
+    the spread stays the mismatch's, or the learned pixels' if that is wider), once
+    :data:`LEARN_POPULATION_MIN` pixels have learned: a real sensor's thresholds sit
     where its biases put them, not at a datasheet's nominal value.
 
     ``cycles``: how many cycles it has learned from."""
@@ -2187,14 +2187,12 @@ class LearnedThresholds:
 def _population_prior(mean: np.ndarray, spread: np.ndarray, learned: np.ndarray
                       ) -> tuple[np.ndarray, np.ndarray]:
     """``mean`` and ``spread`` with the pixels not ``learned`` given the learned pixels'
-    population: their median, and their robust spread (1.4826 median absolute deviation)
-    less the median of their own errors in quadrature (at least
-    :data:`LEARN_SD_FLOOR`)."""
+    median, and a spread no narrower than their own (the sensor's mismatch) nor than the
+    learned pixels' (1.4826 median absolute deviation): learned values are posterior
+    means, drawn towards the prior, so their spread understates the population's."""
     mu = float(np.median(mean[learned]))
     mad = 1.4826 * float(np.median(np.abs(mean[learned] - mu)))
-    own = float(np.median(spread[learned]))
-    pop = math.sqrt(max(mad * mad - own * own, LEARN_SD_FLOOR ** 2))
-    return np.where(learned, mean, mu), np.where(learned, spread, pop)
+    return np.where(learned, mean, mu), np.where(learned, spread, np.maximum(spread, mad))
 
 
 _PROGRESS_PARTS = 32
