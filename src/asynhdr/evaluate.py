@@ -42,7 +42,7 @@ from asynhdr.framecam import (
 )
 from asynhdr.mef import fuse_frames
 from asynhdr.metrics import ImageComparison, compare_images
-from asynhdr.ml import FLAG_FILLED
+from asynhdr.ml import FLAG_FEW_EVENTS, FLAG_FILLED
 from asynhdr.reconstruct import DEFAULT_K, reconstruct
 from asynhdr.rig import Rig
 from asynhdr.scene import Scene, exposure_scale, flat_field, from_radiance_map, log_average
@@ -198,13 +198,15 @@ def evaluate_scene(
                     "defects": ml_calibration.defects, "out": ml_out}
             img = reconstruct(rec, method=m, ml_options=opts)[-1]
         else:
-            img = reconstruct(rec, method=m, k=k, cmap=cmap)[-1]
+            img = reconstruct(rec, method=m, k=k, cmap=cmap,
+                              ml_options={"out": ml_out} if m == "ml" else None)[-1]
         images[m] = finite_image(img, name=f"{name} {m}")[0]
         tick(f"{name}: reconstruct", i + 1, len(methods))
     n_events = int(rec.events.size)
-    filled = 0
+    filled = few = 0
     if "flags" in ml_out:
         filled = int(np.count_nonzero(valid & (ml_out["flags"][-1] & FLAG_FILLED != 0)))
+        few = int(np.count_nonzero(valid & (ml_out["flags"][-1] == FLAG_FEW_EVENTS)))
     del rec
 
     inside = truth[valid]
@@ -247,6 +249,7 @@ def evaluate_scene(
         "p0.1_lux": l_min, "span_stops": span,
         "sensor": sensor.name, "rig": rig.to_metadata(), "n_cycles": n_cycles, "k": k,
         "n_events": n_events, "ml_dead_pixels_filled": filled,
+        "ml_few_event_pixels": few,
         "frame_camera": cam.to_metadata(),
         "exposures_s": full.tolist(), "budget_exposures_s": short.tolist(),
         "auto_exposure_s": t_auto, "seed": seed, "sensor_seed": sensor_seed,
