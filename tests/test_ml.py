@@ -341,6 +341,11 @@ def test_a_silent_pixel_far_from_l_const_is_taken_for_dead() -> None:
     reconstruct(rec, method="ml", ml_options={"out": out2,
                                                "sensor": get_preset("ideal")})
     assert np.all(out2["flags"][-1][bright] == ml.FLAG_FEW_EVENTS)
+    model = ml.cached_model(rig, sensor, window_us=rig.ramp_us)
+    with pytest.raises(ValueError, match=r"dead_fraction .* \[0, 1\); got 1.5"):
+        ml.estimate(rec.events, width=24, height=12, starts_us=np.array([0]), model=model,
+                    priors=ml.thresholds_prior(sensor, width=24, height=12),
+                    dead_fraction=1.5)
 
 
 def test_pixels_beyond_the_range_hold_its_bound_and_are_flagged() -> None:

@@ -2348,6 +2348,9 @@ def estimate(
         sensor's (:attr:`MlModel.dead_fraction`); 0 where a calibration's map names the
         dead pixels.
     """
+    if dead_fraction is not None and not 0.0 <= dead_fraction < 1.0:
+        raise ValueError(f"ml: dead_fraction is the share of pixels that never fire, in "
+                         f"[0, 1); got {dead_fraction}")
     starts = np.asarray(starts_us, dtype=np.int64)
     npx = width * height
     n = starts.size
