@@ -1846,13 +1846,9 @@ def _one_event(m, sg, ext, ext_t, j, jj, ww, e, mode, exact, v0a, v0b, rows, dlo
         i = _node_at(ext_t, te) + 1
         w_hi = we
         w_lo = we
-        if i < n:
-            if sg > 0:
-                w_hi = max(we, ext[2, i, j])
-                w_lo = min(we, ext[3, i, j])
-            else:
-                w_hi = max(we, -ext[3, i, j])
-                w_lo = min(we, -ext[2, i, j])
+        if i < n:  # the running extremes to the end (W's maximum is V's, or -V's minimum)
+            w_hi = max(we, sg * ext[ia + 2, i, j])
+            w_lo = min(we, sg * ext[ib + 2, i, j])
         after = (_cdf((ca - (w_hi - we)) / math.sqrt(sa * sa + sr2 + 1e-12))
                  * _cdf((cb - (we - w_lo)) / math.sqrt(sb * sb + sr2 + 1e-12)))
     return dens * first * other * after
@@ -1930,10 +1926,12 @@ def _sparse_kernel(todo, off, t, p, mode, exact, v0a, v0b, rows, g0, dlog, locat
         m2 = 0.0
         m = min(t[lo], wmax - 1) if n == 1 else 0
         sg = 1.0 if n == 1 and p[lo] > 0 else -1.0
+        silence = np.empty(ng)
         for j in range(ng):
             g = ext_g[j]
             jj, ww, e = _at_g(mode, g, g0, dlog, rows.shape[1])
             pr = _silence(ext, j, c1, c2, s1, s2, u_sd)
+            silence[j] = pr
             if n == 1:
                 pr = lam * pr + _one_event(m, sg, ext, ext_t, j, jj, ww, e, mode, exact, v0a,
                                            v0b, rows, dlog, locate, tc_off, te_off, t_end,
@@ -1954,8 +1952,7 @@ def _sparse_kernel(todo, off, t, p, mode, exact, v0a, v0b, rows, g0, dlog, locat
                 for j in range(ng):
                     d = (ext_g[j] - med) / sp
                     if d * d < 50.0:
-                        evidence += (_silence(ext, j, c1, c2, s1, s2, u_sd)
-                                     * math.exp(-0.5 * d * d))
+                        evidence += silence[j] * math.exp(-0.5 * d * d)
                 evidence *= (ext_g[1] - ext_g[0]) / (sp * 2.5066282746310002)
             if (1.0 - dead_fraction) * evidence <= dead_fraction:
                 continue
@@ -2106,9 +2103,17 @@ wrong optimum than a threshold that far out."""
 
 
 LEARN_POPULATION_MIN = 100
-"""Pixels that must have learned a threshold before their population's mean and spread
-replace the sensor's nominal threshold and mismatch as the prior of the pixels that have
-not (:class:`LearnedThresholds`)."""
+"""Pixels that must have learned a threshold, where learning selects none by its
+threshold (:func:`_unselected`), before their median replaces the sensor's nominal
+threshold as the prior of the pixels that have not learned (:class:`LearnedThresholds`)."""
+
+LEARN_BIN = 0.5
+"""Width in ``ln L`` of the radiance bins in which :class:`LearnedThresholds` checks that
+learning selects no pixels by their thresholds."""
+
+LEARN_POPULATION_SHARE = 0.95
+"""Share of a radiance bin's fits that must have fired enough events to learn for the
+bin's learned pixels to sample the population without selection."""
 
 
 class LearnedThresholds:
@@ -2125,8 +2130,10 @@ class LearnedThresholds:
     more. The pixels that have learned nothing yet (dark ones, those near ``L_const``:
     few events) take the learned pixels' median as their prior's mean (empirical Bayes;
     the spread stays the mismatch's, or the learned pixels' if that is wider), once
-    :data:`LEARN_POPULATION_MIN` pixels have learned: a real sensor's thresholds sit
-    where its biases put them, not at a datasheet's nominal value.
+    :data:`LEARN_POPULATION_MIN` pixels have learned where learning selects none by its
+    threshold (radiances at which nearly every pixel fires enough events): a real
+    sensor's thresholds sit where its biases put them, not at a datasheet's nominal
+    value.
 
     ``cycles``: how many cycles it has learned from."""
 
@@ -2134,6 +2141,8 @@ class LearnedThresholds:
         self.cycles = 0
         self._state: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
         self._learned: list[np.ndarray] | None = None
+        # the learned pixels that sample the population without selection (below)
+        self._sample: list[np.ndarray] = []
 
     @property
     def learned(self) -> tuple[np.ndarray, np.ndarray] | None:
@@ -2164,7 +2173,9 @@ class LearnedThresholds:
         m_on, m_off, s_on, s_off = self._state
         if self._learned is None:
             self._learned = [np.zeros(m_on.size, bool), np.zeros(m_on.size, bool)]
+            self._sample = [np.zeros(m_on.size, bool), np.zeros(m_on.size, bool)]
         enough = np.asarray(res.n_events[cycle]).ravel() >= LEARN_MIN_EVENTS
+        unselected = _unselected(res, cycle, enough)
         new = []
         for k, (m, sd0, c, sd) in enumerate(((m_on, s_on, res.c_on, res.sd_on),
                                              (m_off, s_off, res.c_off, res.sd_off))):
@@ -2177,21 +2188,44 @@ class LearnedThresholds:
             spread = np.where(ok, np.maximum(sd, LEARN_SD_FLOOR), sd0)
             learned = self._learned[k] | ok
             self._learned[k] = learned
-            if np.count_nonzero(learned) >= LEARN_POPULATION_MIN:
-                mean, spread = _population_prior(mean, spread, learned)
+            self._sample[k] |= ok & unselected
+            if np.count_nonzero(self._sample[k]) >= LEARN_POPULATION_MIN:
+                mean, spread = _population_prior(mean, spread, learned, self._sample[k])
             new.append((mean, spread))
         self._state = (new[0][0], new[1][0], new[0][1], new[1][1])
         self.cycles += 1
 
 
-def _population_prior(mean: np.ndarray, spread: np.ndarray, learned: np.ndarray
-                      ) -> tuple[np.ndarray, np.ndarray]:
-    """``mean`` and ``spread`` with the pixels not ``learned`` given the learned pixels'
-    median, and a spread no narrower than their own (the sensor's mismatch) nor than the
-    learned pixels' (1.4826 median absolute deviation): learned values are posterior
-    means, drawn towards the prior, so their spread understates the population's."""
-    mu = float(np.median(mean[learned]))
-    mad = 1.4826 * float(np.median(np.abs(mean[learned] - mu)))
+def _unselected(res: MlResult, cycle: int, enough: np.ndarray) -> np.ndarray:
+    """The pixels whose radiance lies where (nearly) every fitted pixel fired enough
+    events to learn: a bin of ``ln L`` (:data:`LEARN_BIN`) with at least
+    :data:`LEARN_POPULATION_SHARE` of its fits above :data:`LEARN_MIN_EVENTS`. Elsewhere
+    the count selects: a pixel fires about ``swing / c`` events, so where the count hovers
+    about the floor the pixels that learn are those of low thresholds (on a flat field at
+    ``L_const`` their median was low enough to take every silent pixel for dead)."""
+    g = np.log(np.asarray(res.radiance[cycle], dtype=np.float64).ravel())
+    fit = (np.asarray(res.flags[cycle]).ravel() == 0) & np.isfinite(g)
+    out = np.zeros(g.size, bool)
+    if not fit.any():
+        return out
+    b = np.floor(g[fit] / LEARN_BIN).astype(np.int64)
+    b -= b.min()
+    total = np.bincount(b)
+    learned = np.bincount(b, weights=enough[fit])
+    good = (total >= 10) & (learned >= LEARN_POPULATION_SHARE * total)
+    out[np.flatnonzero(fit)[good[b]]] = True
+    return out
+
+
+def _population_prior(mean: np.ndarray, spread: np.ndarray, learned: np.ndarray,
+                      sample: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``mean`` and ``spread`` with the pixels not ``learned`` given the median of the
+    ``sample`` pixels' learned values, and a spread no narrower than their own (the
+    sensor's mismatch) nor than the sample's (1.4826 median absolute deviation): learned
+    values are posterior means, drawn towards the prior, so their spread understates the
+    population's."""
+    mu = float(np.median(mean[sample]))
+    mad = 1.4826 * float(np.median(np.abs(mean[sample] - mu)))
     return np.where(learned, mean, mu), np.where(learned, spread, np.maximum(spread, mad))
 
 
