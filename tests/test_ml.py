@@ -707,3 +707,40 @@ def test_cli_valid_mask_tells_fits_from_estimates_of_few_events(tmp_path) -> Non
     assert np.all(valid[:4] == 128) and np.all(valid[4:] == 255)
     assert "128 of 128 pixels estimated" in " ".join(r.output.split())
     assert "64 of them from fewer than two events" in " ".join(r.output.split())
+
+
+def test_gauss_newton_settles_where_it_used_to_swing() -> None:
+    # One pixel at 1.74 lux simulated with the IMX636 and its default rig. The fit's
+    # gradient has the density's Jacobian term, its matrix not: from the start, each step
+    # overshot, and the iteration swung between two points 0.025 apart in ln L for as
+    # long as it ran; the fit was whichever it stopped on. A step that turns back on the
+    # last by more than half of it now goes to the secant's point between them: the fit
+    # is the same whatever the iterations allowed.
+    t = np.array([19117, 22107, 25974, 30819, 37522, 45063, 54886, 72245, 73820, 75162,
+                  77071, 112699, 116831, 122529, 130668, 139261, 150361, 161417, 163208,
+                  164649, 166033, 169211], dtype=np.int64)
+    p = np.array([-1] * 7 + [1] * 4 + [-1] * 6 + [1] * 5, dtype=np.int8)
+    sensor = get_preset("imx636")
+    rig = default_rig("imx636")
+    m = ml.cached_model(rig, sensor, window_us=float(rig.ramp_us))
+    c1, c2, s1 = sensor.threshold_on, sensor.threshold_off, sensor.threshold_sigma
+    su, mu = ml._u_prior(c1, c2, 0.0)
+    tq2 = m.jitter_us ** 2 + m.res_us ** 2 / 12.0
+    eq2 = m.res_us ** 2 / 12.0 + (m.jitter_us ** 2 if m.dead else 0.0)
+    common = (m.mode, m.dead)
+    tables = (m.exact, m.v0[0], m.v0[1], m.rows, m.g0, m.dlog, m.locate,
+              np.int64(m.window_us), m.g_lo, m.g_hi)
+    none = np.int64(-1)
+    g0 = ml._start(0, t.size, t, p, *common, *tables, m.net_g, m.net_v, c1, c2, mu, none,
+                   none, np.int64(m.split_us))
+    fits = []
+    for n_iter in (16, 17, 18):
+        h, bvec, x, lmat, wy, wz, stat, _ = ml._workspace()
+        res = np.zeros(6)
+        ml._gauss_newton(g0, 0, t.size, t, p, *common, m.reset_sigma ** 2, tq2, eq2,
+                         m.noise_rate_per_us, *tables, c1, c2, s1, s1, su, mu, 0.0, 0.0,
+                         np.int64(n_iter), none, none, h, bvec, x, lmat, wy, wz, stat, res,
+                         False)
+        fits.append(res[0])
+    assert max(fits) - min(fits) < 2e-3
+    assert abs(fits[0] - math.log(1.7417)) < 0.1

@@ -901,7 +901,10 @@ def _gauss_newton(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v
                   huber=_HUBER):
     """Gauss-Newton from ``g``: least squares with Huber's weights (constant ``huber``; 0:
     plain least squares) until converged (or half the iterations), then with the outlier
-    weights; with ``robust0`` the outlier weights from the first step. ``res`` gets ``(g,
+    weights; with ``robust0`` the outlier weights from the first step. A step that turns
+    back on the last one by more than half of it is cut to the secant's point between
+    them (the gradient has the density's Jacobian term, the matrix not: the plain
+    iteration can swing between two points). ``res`` gets ``(g,
     var_g, u, c_on, c_off, chi2)``; ``stat`` the last pass's largest ``z^2``, its event and
     the unweighted chi2. Returns whether Huber's weights bounded an equation's pull in the
     first phase (without it, plain least squares takes the same steps)."""
@@ -912,6 +915,7 @@ def _gauss_newton(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v
     chi2 = 0.0
     robust = lam <= 0.0 or robust0
     clipped = False
+    last = 0.0
     for it in range(n_iter + 1):
         h[:, :] = 0.0
         bvec[:] = 0.0
@@ -938,16 +942,25 @@ def _gauss_newton(g, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v
         if it == n_iter:
             break
         dg = min(max(x[0], -_MAX_STEP_G), _MAX_STEP_G)
+        f = 1.0
+        if dg * last < 0.0 and abs(dg) > 0.5 * abs(last):
+            # the step turns back on the last one by more than half of it: the iteration
+            # overshoots (the density's Jacobian term is in the gradient, not in the
+            # matrix) and would swing between two points; the secant's point between them
+            f = abs(last) / (abs(last) + abs(dg))
+        dg *= f
         gn = min(max(g + dg, g_lo), g_hi)
-        uu += x[1]
-        cc1 = max(cc1 + x[2], 1e-3)
-        cc2 = max(cc2 + x[3], 1e-3)
+        uu += f * x[1]
+        cc1 = max(cc1 + f * x[2], 1e-3)
+        cc2 = max(cc2 + f * x[3], 1e-3)
         done = abs(gn - g) < _TOL_G
+        last = gn - g
         g = gn
         if done or it == n_iter // 2 - 1:
             if robust:
                 break  # the variance from this last matrix, a step of < _TOL_G away
             robust = True
+            last = 0.0  # another objective: its first step may turn back
     res[0] = g
     res[1] = v00
     res[2] = uu
