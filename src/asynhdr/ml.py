@@ -161,6 +161,9 @@ _OUTLIER_Z2 = 16.0
 _DENSITY_FLOOR = 1e-300
 _THRESHOLD_Z = 2.5
 _SCAN_STEP = 0.2
+_PROBE = 1.5
+"""A pixel's fit is checked against the likelihood's profile this far either side in
+``ln L`` (:func:`_probe`)."""
 _HUBER = 3.0
 """Gauss-Newton's first phase weighs an equation more than this many standard deviations
 off as if it were at that distance: a background event's pull is bounded before the
@@ -1370,6 +1373,44 @@ def _settle(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, 
 
 
 @nb.njit(cache=True, error_model="numpy")
+def _probe(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0, dlog,
+           locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp, h, bvec, x, lmat, wy,
+           wz, stat, st_o, saved):
+    """The chosen fit ``res`` against the likelihood's profile :data:`_PROBE` either side of
+    it (:func:`_profile_at`): where a side is likelier, the fit from there (the profile
+    can have a second, shallower optimum, and a start biased by the thresholds'
+    mismatch falls into it); the likeliest stays in ``res``. ``saved[0:11]`` is work
+    space."""
+    none = np.int64(-1)
+    o_fit = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
+                     rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su, mu_u, none, none, h,
+                     bvec, st_o)
+    buf = np.empty(6)
+    st = np.empty(5)
+    g = res[0]
+    for sgn in (-1.0, 1.0):
+        ga = min(max(g + sgn * _PROBE, g_lo), g_hi)
+        if abs(ga - g) < 0.5 * _PROBE:
+            continue
+        o_a = _profile_at(ga, buf, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
+                          v0b, rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su,
+                          mu_u, h, bvec, x, lmat, wy, wz, st, st_o)
+        if not o_a < o_fit:
+            continue
+        _save(res, stat, saved, 0)
+        _fit_from(ga, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
+                  g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp, none,
+                  none, h, bvec, x, lmat, wy, wz, stat, res, st_o)
+        o_new = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
+                         rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su, mu_u, none, none,
+                         h, bvec, st_o)
+        if o_new < o_fit:
+            o_fit = o_new
+        else:
+            _load(res, stat, saved, 0)
+
+
+@nb.njit(cache=True, error_model="numpy")
 def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
                dlog, locate, wmax, g_lo, g_hi, net_g, net_v, c1, c2, s1, s2, gp, sgp,
                fixed, h, bvec, x, lmat, wy, wz, out, u_sd, stat, res, scan, split, st_o,
@@ -1542,6 +1583,10 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
     res[2] = best_u
     res[3] = best_c1
     res[4] = best_c2
+    if _PROBE > 0.0 and not (0.0 < sgp < 1e-3):
+        _probe(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
+               dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp, h, bvec, x,
+               lmat, wy, wz, stat, st_o, saved)
     flag = _settle(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
                    dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, h, bvec, x, lmat,
                    wy, wz, st_o)
