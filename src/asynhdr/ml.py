@@ -1426,8 +1426,9 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
     with the outlier weights from its first step (least squares may have followed that
     event elsewhere), then the same again with the worst event taken for a background
     event, each kept when its likelihood is higher (:func:`_fit_nll`: the background
-    event is priced at its own density). A fit left vague is checked on the likelihood's
-    profile (:func:`_profile_walk`)."""
+    event is priced at its own density). The chosen fit is checked on the likelihood's
+    profile :data:`_PROBE` either side (:func:`_probe`), and a fit left vague is walked on
+    that profile (:func:`_profile_walk`)."""
     su, mu_u = _u_prior(c1, c2, u_sd)
     if fixed:
         _gauss_newton(gp, lo, hi, t, p, mode, dead, sr2, tq2, eq2, 0.0, exact, v0a, v0b, rows,
