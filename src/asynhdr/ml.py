@@ -161,9 +161,13 @@ _OUTLIER_Z2 = 16.0
 _DENSITY_FLOOR = 1e-300
 _THRESHOLD_Z = 2.5
 _SCAN_STEP = 0.2
-_PROBE = 1.5
-"""A pixel's fit is checked against the likelihood's profile this far either side in
-``ln L`` (:func:`_probe`)."""
+_PROBES = (0.5, 1.5)
+"""A pixel's fit is checked against the likelihood's profile these distances either side
+in ``ln L`` (:func:`_probe`)."""
+_PROBE_MARGIN = 2.0
+"""... and fitted again from a point of that profile whose ``-2 ln`` likelihood is lower
+by more than this (the Gauss-Newton fit is the likelihood's optimum only nearly: its
+variances are held within a step)."""
 _HUBER = 3.0
 """Gauss-Newton's first phase weighs an equation more than this many standard deviations
 off as if it were at that distance: a background event's pull is bounded before the
@@ -1373,32 +1377,181 @@ def _settle(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, 
 
 
 @nb.njit(cache=True, error_model="numpy")
+def _profile_values(gs, lo, hi, t, p, mode, dead, sr2, tq2, eq2, exact, v0a, v0b, rows, g0,
+                    dlog, locate, wmax, buf):
+    """One pass over the events ``lo..hi`` for every ``ln L`` of ``gs`` at once: with
+    ``ln L`` held, each residual is linear in ``(u, c_on, c_off)``, ``r_i = d_i + a_i .
+    (u, c_on, c_off)`` (:func:`_normal`'s equations, no event taken for background).
+    ``buf[k]`` (event ``lo + k``) receives ``a_i`` in columns 0 to 2, then per ``gs[q]``
+    ``d_i``, the variance and ``|V'(t_c)|`` in columns ``3 + 3q`` to ``5 + 3q``."""
+    n_g = gs.shape[0]
+    nr = rows.shape[1]
+    js = np.empty(n_g, np.int64)
+    ws = np.empty(n_g)
+    es = np.empty(n_g)
+    vs = np.empty(n_g)
+    for q in range(n_g):
+        js[q], ws[q], es[q] = _at_g(mode, gs[q], g0, dlog, nr)
+        vs[q], _, _ = _eval(mode, js[q], ws[q], es[q], -1, False, exact, v0a, v0b, rows, dlog,
+                            locate)
+    prev = -1
+    n_on = 0.0
+    n_off = 0.0
+    for i in range(lo, hi):
+        k = i - lo
+        m = t[i]
+        if m >= wmax:
+            m = wmax - 1
+        on = p[i] > 0
+        if dead:
+            buf[k, 0] = -1.0 if prev < 0 else 0.0
+            buf[k, 1] = -1.0 if on else 0.0
+            buf[k, 2] = 0.0 if on else 1.0
+        else:
+            if on:
+                n_on += 1.0
+            else:
+                n_off += 1.0
+            buf[k, 0] = -1.0
+            buf[k, 1] = -n_on
+            buf[k, 2] = n_off
+        for q in range(n_g):
+            vc, _, dtc = _eval(mode, js[q], ws[q], es[q], m, False, exact, v0a, v0b, rows,
+                               dlog, locate)
+            if dead:
+                if prev < 0:
+                    d = vc - vs[q]
+                    var = sr2 + dtc * dtc * tq2
+                else:
+                    ref, _, dte = _eval(mode, js[q], ws[q], es[q], prev, True, exact, v0a,
+                                        v0b, rows, dlog, locate)
+                    d = vc - ref
+                    var = sr2 + dtc * dtc * tq2 + dte * dte * eq2
+            else:
+                d = vc - vs[q]
+                var = sr2 * (k + 1) + dtc * dtc * tq2
+            buf[k, 3 + 3 * q] = d
+            buf[k, 4 + 3 * q] = max(var, 1e-12)
+            buf[k, 5 + 3 * q] = abs(dtc)
+        if dead:
+            prev = m
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _profile_from_values(buf, n, q, lam, c1, c2, s1, s2, su, mu_u):
+    """The likelihood's profile at ``gs[q]`` of :func:`_profile_values`: ``(u, c_on,
+    c_off)`` fitted with ``ln L`` held (weighted least squares with their priors, Huber's
+    weights to convergence and then, with background events, two steps with the outlier
+    weights), and the objective there (:func:`_fit_nll`'s). Linear in those three, each
+    step is exact for its weights: no pass over the tables."""
+    col = 3 + 3 * q
+    th0 = mu_u
+    th1 = c1
+    th2 = c2
+    p0 = 1.0 / (su * su)
+    p1 = 1.0 / (s1 * s1)
+    p2 = 1.0 / (s2 * s2)
+    phase = 0 if lam > 0.0 else 1
+    n_robust = 0
+    for _it in range(8):
+        h00 = p0
+        h11 = p1
+        h22 = p2
+        h01 = h02 = h12 = 0.0
+        b0 = p0 * mu_u
+        b1 = p1 * c1
+        b2 = p2 * c2
+        for k in range(n):
+            a0 = buf[k, 0]
+            a1 = buf[k, 1]
+            a2 = buf[k, 2]
+            d = buf[k, col]
+            var = buf[k, col + 1]
+            r = d + a0 * th0 + a1 * th1 + a2 * th2
+            w = 1.0 / var
+            z2 = r * r * w
+            if phase == 0:
+                if z2 > _HUBER * _HUBER:
+                    w *= _HUBER / math.sqrt(z2)
+            elif lam > 0.0:
+                f = math.exp(-0.5 * z2) * buf[k, col + 2] / (math.sqrt(var)
+                                                             * 2.5066282746310002)
+                w *= f / (f + lam)
+            h00 += w * a0 * a0
+            h01 += w * a0 * a1
+            h02 += w * a0 * a2
+            h11 += w * a1 * a1
+            h12 += w * a1 * a2
+            h22 += w * a2 * a2
+            b0 -= w * a0 * d
+            b1 -= w * a1 * d
+            b2 -= w * a2 * d
+        # (h) theta = b, 3x3 by Cramer's rule (h is positive definite: the priors)
+        c00 = h11 * h22 - h12 * h12
+        c01 = h02 * h12 - h01 * h22
+        c02 = h01 * h12 - h02 * h11
+        det = h00 * c00 + h01 * c01 + h02 * c02
+        if not det > 0.0:
+            break
+        n0 = (c00 * b0 + c01 * b1 + c02 * b2) / det
+        n1 = (c01 * b0 + (h00 * h22 - h02 * h02) * b1 + (h01 * h02 - h00 * h12) * b2) / det
+        n2 = (c02 * b0 + (h01 * h02 - h00 * h12) * b1 + (h00 * h11 - h01 * h01) * b2) / det
+        n1 = max(n1, 1e-3)
+        n2 = max(n2, 1e-3)
+        moved = abs(n0 - th0) + abs(n1 - th1) + abs(n2 - th2)
+        th0 = n0
+        th1 = n1
+        th2 = n2
+        n_robust += phase
+        if moved < 1e-4 or n_robust >= 2:
+            if phase == 1:
+                break
+            phase = 1
+    nll = 0.0
+    lam_nll = max(lam, 0.0)
+    for k in range(n):
+        d = buf[k, col]
+        var = buf[k, col + 1]
+        r = d + buf[k, 0] * th0 + buf[k, 1] * th1 + buf[k, 2] * th2
+        f = math.exp(-0.5 * r * r / var) * buf[k, col + 2] / (math.sqrt(var)
+                                                              * 2.5066282746310002)
+        nll -= 2.0 * math.log(max(f + lam_nll, _DENSITY_FLOOR))
+    return nll + ((th1 - c1) / s1) ** 2 + ((th2 - c2) / s2) ** 2 + ((th0 - mu_u) / su) ** 2
+
+
+@nb.njit(cache=True, error_model="numpy")
 def _probe(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0, dlog,
            locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp, h, bvec, x, lmat, wy,
            wz, stat, st_o, saved):
-    """The chosen fit ``res`` against the likelihood's profile :data:`_PROBE` either side of
-    it (:func:`_profile_at`): where a side is likelier, the fit from there (the profile
-    can have a second, shallower optimum, and a start biased by the thresholds'
-    mismatch falls into it); the likeliest stays in ``res``. ``saved[0:11]`` is work
-    space."""
+    """The chosen fit ``res`` against the likelihood's profile at the distances
+    :data:`_PROBES` either side of it (:func:`_profile_values`, one pass for all):
+    wherever the profile is likelier, the fit from there, likeliest first (the profile can
+    have a second, shallower optimum, and a start biased by the thresholds' mismatch
+    falls into it); the likeliest fit stays in ``res``. ``saved[0:11]`` is work space."""
     none = np.int64(-1)
     o_fit = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
                      rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su, mu_u, none, none, h,
                      bvec, st_o)
-    buf = np.empty(6)
-    st = np.empty(5)
     g = res[0]
-    for sgn in (-1.0, 1.0):
-        ga = min(max(g + sgn * _PROBE, g_lo), g_hi)
-        if abs(ga - g) < 0.5 * _PROBE:
-            continue
-        o_a = _profile_at(ga, buf, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
-                          v0b, rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su,
-                          mu_u, h, bvec, x, lmat, wy, wz, st, st_o)
-        if not o_a < o_fit:
-            continue
+    n_p = len(_PROBES)
+    gs = np.empty(2 * n_p)
+    for k in range(n_p):
+        gs[2 * k] = min(max(g - _PROBES[k], g_lo), g_hi)
+        gs[2 * k + 1] = min(max(g + _PROBES[k], g_lo), g_hi)
+    n = hi - lo
+    buf = np.empty((n, 3 + 3 * gs.shape[0]))
+    _profile_values(gs, lo, hi, t, p, mode, dead, sr2, tq2, eq2, exact, v0a, v0b, rows, g0,
+                    dlog, locate, wmax, buf)
+    obj = np.empty(gs.shape[0])
+    for q in range(gs.shape[0]):
+        obj[q] = np.inf
+        if abs(gs[q] - g) >= 0.5 * _PROBES[0]:
+            obj[q] = _profile_from_values(buf, n, q, lam, c1, c2, s1, s2, su, mu_u)
+    for q in np.argsort(obj):
+        if not obj[q] < o_fit - _PROBE_MARGIN:
+            break
         _save(res, stat, saved, 0)
-        _fit_from(ga, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
+        _fit_from(gs[q], lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
                   g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp, none,
                   none, h, bvec, x, lmat, wy, wz, stat, res, st_o)
         o_new = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
@@ -1427,7 +1580,7 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
     event elsewhere), then the same again with the worst event taken for a background
     event, each kept when its likelihood is higher (:func:`_fit_nll`: the background
     event is priced at its own density). The chosen fit is checked on the likelihood's
-    profile :data:`_PROBE` either side (:func:`_probe`), and a fit left vague is walked on
+    profile either side (:func:`_probe`), and a fit left vague is walked on
     that profile (:func:`_profile_walk`)."""
     su, mu_u = _u_prior(c1, c2, u_sd)
     if fixed:
@@ -1584,7 +1737,7 @@ def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, ro
     res[2] = best_u
     res[3] = best_c1
     res[4] = best_c2
-    if _PROBE > 0.0 and not (0.0 < sgp < 1e-3):
+    if not (0.0 < sgp < 1e-3):
         _probe(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
                dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp, h, bvec, x,
                lmat, wy, wz, stat, st_o, saved)
