@@ -321,8 +321,10 @@ def test_silent_and_one_event_pixels_are_estimated_from_how_few_they_fired() -> 
 
 def test_a_silent_pixel_far_from_l_const_is_taken_for_dead() -> None:
     # a sensor with 5 % dead pixels: in a patch at 1000 lux (it swings far beyond both
-    # thresholds) a silent pixel is dead: NaN, FLAG_NO_EVENTS; in a patch in the paper
-    # rig's blind band (5 lux) its neighbours' fits say silence is likely: estimated
+    # thresholds) a silent pixel is dead: FLAG_NO_EVENTS, and in the image the median of
+    # its measured neighbours (FLAG_FILLED, no deviation), as a calibration's map of dead
+    # pixels would have it; in a patch in the paper rig's blind band (5 lux) its
+    # neighbours' fits say silence is likely: estimated
     rig = Rig(l_const=10.0, contrast_ratio_1=1000.0, contrast_ratio_2=1000.0)
     sensor = dataclasses.replace(get_preset("ideal"), dead_pixel_fraction=0.05)
     scene = np.full((12, 24), 1000.0)
@@ -334,7 +336,10 @@ def test_a_silent_pixel_far_from_l_const_is_taken_for_dead() -> None:
     n, fl = out["n_events"][-1], out["flags"][-1]
     bright = (n == 0) & (scene == 1000.0)
     assert bright.sum() >= 3
-    assert np.all(fl[bright] == ml.FLAG_NO_EVENTS) and np.isnan(img[bright]).all()
+    assert np.all(fl[bright] == ml.FLAG_NO_EVENTS | ml.FLAG_FILLED)
+    assert np.all(np.abs(np.log(img[bright] / 1000.0)) < 0.05)
+    assert np.isnan(out["sigma_log"][-1][bright]).all()
+    assert not ml.valid_flags(fl[bright]).any()
     band = scene == 5.0
     assert np.all(n[band] == 0) and np.all(fl[band] == ml.FLAG_FEW_EVENTS)
     assert np.all(np.abs(np.log(img[band] / 5.0)) < 2.0 * out["sigma_log"][-1][band])

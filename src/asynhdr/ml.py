@@ -2754,7 +2754,9 @@ def reconstruct_ml(
     spread. ``defects``: a calibration's map of dead pixels ``(height, width)``: those
     without an estimate (or silent) get the median of their measured neighbours
     (:data:`FLAG_FILLED`), and a silent pixel outside the map is taken to be working
-    (its silence estimates it, :data:`FLAG_FEW_EVENTS`). ``out`` receives ``sigma_log``,
+    (its silence estimates it, :data:`FLAG_FEW_EVENTS`); without a map, the silent pixels
+    the fit takes for dead (:data:`FLAG_NO_EVENTS`) are filled the same way. ``out``
+    receives ``sigma_log``,
     ``flags``, ``c_on``, ``c_off`` and ``n_events`` (:class:`MlResult`'s fields).
     ``settled_start``: the pixels start the window at rest on their reference (a single
     ramp from a closed shutter): the start offset is then known to the reset noise (or
@@ -2832,6 +2834,14 @@ def reconstruct_ml(
             res.flags[c][silent] = FLAG_NO_EVENTS
             res.radiance[c], filled = fill_defects(res.radiance[c], dead)
             res.flags[c][filled] |= FLAG_FILLED
+    else:
+        for c in range(res.radiance.shape[0]):
+            # the silent pixels the fit took for dead (their neighbours say the signal
+            # swung far enough to fire), filled as the map's would be
+            dead = (res.flags[c] == FLAG_NO_EVENTS) & (res.n_events[c] == 0)
+            if dead.any():
+                res.radiance[c], filled = fill_defects(res.radiance[c], dead)
+                res.flags[c][filled] |= FLAG_FILLED
     if out is not None:
         out.update(sigma_log=res.sigma_log, flags=res.flags, c_on=res.c_on, c_off=res.c_off,
                    n_events=res.n_events)

@@ -200,6 +200,10 @@ def reconstruct(
         console.print(f"ml: {int(mlo.defects.sum()):,} dead pixels in the calibration; "
                       f"{mlo.filled:,} of them filled from their neighbours in the last image "
                       "(0 in _valid.png)")
+    elif mlo.active and mlo.filled:
+        console.print(f"ml: {mlo.filled:,} silent pixels taken for dead (their neighbours say "
+                      "they would have fired), filled from their neighbours in the last image "
+                      "(0 in _valid.png)")
     if method == "ml" and calibration is None:
         from asynhdr.ml import sensor_of
 
