@@ -12,7 +12,7 @@ import pytest
 from typer.testing import CliRunner
 
 from asynhdr.cli import _register, app
-from asynhdr.evaluate import evaluate_scene, rig_mid_radiance
+from asynhdr.evaluate import ML_UNCALIBRATED, evaluate_scene, rig_mid_radiance
 from asynhdr.rig import Rig
 from asynhdr.scene import exposure_scale, from_radiance_map, log_average
 
@@ -93,3 +93,21 @@ def test_bench_quick(tmp_path: Path) -> None:
     assert "SNR table" in page and "k sweep" in page
     for rel in res["figures"].values():
         assert (tmp_path / rel).is_file(), rel
+
+
+def test_evaluate_ml_with_and_without_calibration_side_by_side(tmp_path: Path) -> None:
+    # ml-uncalibrated is ml as 'asynhdr reconstruct' runs it without a calibration: the
+    # same image as reconstruct(rec, method="ml") of the same capture
+    y, x = np.mgrid[0:24, 0:32]
+    scene = np.exp((x / 32.0) * 6.0) * (1.0 + 0.3 * np.sin(y / 3.0))
+    ev = evaluate_scene(scene, name="ramp", width=32, height=24, sensor="v2e", n_cycles=2,
+                        methods=("ml", ML_UNCALIBRATED))
+    assert {"ml", ML_UNCALIBRATED} <= set(ev.metrics)
+    assert ev.capture_s[ML_UNCALIBRATED] == ev.capture_s["ml"]
+    for m in ("ml", ML_UNCALIBRATED):
+        assert math.isfinite(ev.metrics[m].log_rmse_stops)
+    # without the c-map's thresholds the uncalibrated fit differs from the c-map's
+    assert not np.array_equal(ev.images["ml"], ev.images[ML_UNCALIBRATED])
+    r = runner.invoke(app, ["evaluate", "flat.npy", "--methods", "ml,mlx", "--out",
+                            str(tmp_path)])
+    assert r.exit_code != 0 and "unknown mlx" in r.output

@@ -51,6 +51,7 @@ from asynhdr.simulate import simulate
 
 __all__ = [
     "DEFAULT_SCENE_METHODS",
+    "ML_UNCALIBRATED",
     "SceneEvaluation",
     "calibrate_for_scenes",
     "calibrate_thresholds_for_scenes",
@@ -62,6 +63,11 @@ logger = logging.getLogger(__name__)
 
 DEFAULT_SCENE_METHODS: tuple[str, ...] = ("raw", "linear", "exp", "ttfe", "invert", "ml")
 """Event methods evaluated on scenes (all with the c-map)."""
+
+ML_UNCALIBRATED = "ml-uncalibrated"
+"""A further method name for :func:`evaluate_scene`: ``ml`` as ``asynhdr reconstruct``
+runs it without a calibration (the nominal thresholds, learned from cycle to cycle; the
+pixels it takes for dead filled), beside ``ml`` with the scenes' calibration."""
 
 AUTO_EXPOSURE_FRACTION = 0.18
 """``frame-auto`` puts the scene's log-average at this fraction of the full well (the 18 %
@@ -162,7 +168,8 @@ def evaluate_scene(
     """Evaluate one scene (see the module's text). ``cmap``: from
     :func:`calibrate_for_scenes` for the same sensor (made here when not given).
     ``ml_calibration``: per-pixel thresholds and dead pixels for ``ml``
-    (:func:`calibrate_thresholds_for_scenes`); without it ``ml`` uses the c-map."""
+    (:func:`calibrate_thresholds_for_scenes`); without it ``ml`` uses the c-map.
+    ``methods`` may name :data:`ML_UNCALIBRATED` too."""
     rig = rig or Rig()
     sensor = get_preset(sensor) if isinstance(sensor, str) else sensor
     cam = get_frame_camera(frame_camera) if isinstance(frame_camera, str) else frame_camera
@@ -197,6 +204,8 @@ def evaluate_scene(
             opts = {"thresholds": ml_calibration.threshold_maps(),
                     "defects": ml_calibration.defects, "out": ml_out}
             img = reconstruct(rec, method=m, ml_options=opts)[-1]
+        elif m == ML_UNCALIBRATED:
+            img = reconstruct(rec, method="ml")[-1]
         else:
             img = reconstruct(rec, method=m, k=k, cmap=cmap,
                               ml_options={"out": ml_out} if m == "ml" else None)[-1]

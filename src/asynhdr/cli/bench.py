@@ -166,7 +166,9 @@ def evaluate(
     designed: bool = typer.Option(False, "--designed", help="Use the preset's designed rig "
                                   "(asynhdr.design.DESIGNED) instead of the paper's."),
     methods: str | None = typer.Option(None, help="Comma-separated event methods (default: "
-                                       "raw,linear,exp,ttfe,invert,ml)."),
+                                       "raw,linear,exp,ttfe,invert,ml; also "
+                                       "ml-uncalibrated: ml as 'asynhdr reconstruct' runs "
+                                       "it without a calibration)."),
     scheduler: str | None = typer.Option(None, help="Evaluate the scenes on dask workers: "
                                          "'local' or a scheduler's address."),
     workers: int | None = typer.Option(None, help="With --scheduler local: worker "
@@ -195,6 +197,14 @@ def evaluate(
 
             rig = default_rig(preset)
         meths = tuple(m.strip() for m in methods.split(",") if m.strip()) if methods else None
+        if meths:
+            from asynhdr.evaluate import ML_UNCALIBRATED
+            from asynhdr.reconstruct import METHODS
+
+            known = (*METHODS, ML_UNCALIBRATED)
+            bad = [m for m in meths if m not in known]
+            if bad:
+                fail(f"--methods: unknown {', '.join(bad)}; known: {', '.join(known)}")
         with contextlib.ExitStack() as stack, progress_bar() as update:
             client = _client(stack, scheduler, workers)
             summaries, _ = _run_scenes(scenes, out, width=width, height=height, preset=preset,
