@@ -776,3 +776,26 @@ def test_a_fit_in_the_profiles_shallower_optimum_is_moved_to_the_likelier_one() 
     assert int(res.flags[0, 0, 0]) == 0
     g = math.log(float(res.radiance[0, 0, 0]))
     assert abs(g - math.log(0.3286)) < 0.3  # 0.40 lux, deviation 0.07 (it was 1.85 off)
+
+
+def test_a_second_optimum_of_near_equal_likelihood_widens_the_stated_deviation() -> None:
+    # One pixel at 16.3 lux, near L_const (37 lux) on the IMX636's default rig, 11 events,
+    # nominal thresholds. Its fit lies at 23.5 lux with a curvature's deviation of 0.014 in
+    # ln L, 26 of them from the truth: the likelihood's profile either side of the fit is
+    # far likelier than that curvature says. The stated deviation is now that of the
+    # mixture of the fit and the profile's points (0.24), the truth within 2 of it.
+    t = [26105, 41762, 70109, 73010, 74938, 115149, 130823, 160373, 163101, 164970, 178534]
+    p = [-1, -1, 1, 1, 1, -1, -1, 1, 1, 1, -1]
+    ev = np.zeros(len(t), dtype=EVENT_DTYPE)
+    ev["t"] = t
+    ev["p"] = p
+    sensor = get_preset("imx636")
+    rig = default_rig("imx636")
+    model = ml.cached_model(rig, sensor, window_us=rig.ramp_us)
+    res = ml.estimate(ev, width=1, height=1, starts_us=np.array([0]), model=model,
+                      priors=ml.thresholds_prior(sensor, width=1, height=1))
+    assert int(res.flags[0, 0, 0]) == 0
+    sd = float(res.sigma_log[0, 0, 0])
+    err = math.log(float(res.radiance[0, 0, 0]) / 16.3097)
+    assert 0.1 < sd < 1.0
+    assert abs(err) < 2.0 * sd

@@ -168,6 +168,9 @@ _PROBE_MARGIN = 2.0
 """... and fitted again from a point of that profile whose ``-2 ln`` likelihood is lower
 by more than this (the Gauss-Newton fit is the likelihood's optimum only nearly: its
 variances are held within a step)."""
+_MODE_EXCESS = 4.0
+"""A point of the profile (:func:`_probe`) widens a fit's stated deviation when its ``-2 ln``
+likelihood lies more than this below what the fit's own curvature predicts there."""
 _HUBER = 3.0
 """Gauss-Newton's first phase weighs an equation more than this many standard deviations
 off as if it were at that distance: a background event's pull is bounded before the
@@ -1561,6 +1564,25 @@ def _probe(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, r
             o_fit = o_new
         else:
             _load(res, stat, saved, 0)
+    if res[0] == g and res[1] > 0.0:
+        # the fit stays: where the profile lies well below what the fit's own curvature
+        # predicts there, the likelihood has mass the curvature does not see (a second
+        # optimum of near-equal likelihood); the variance is that of the mixture of the
+        # fit and those points, each as wide as the fit and weighed by its likelihood
+        v = res[1]
+        sw = 1.0
+        m1 = 0.0
+        m2 = 0.0
+        for q in range(gs.shape[0]):
+            d = gs[q] - g
+            if not obj[q] < np.inf or d * d / v - (obj[q] - o_fit) <= _MODE_EXCESS:
+                continue
+            w = math.exp(-0.5 * max(obj[q] - o_fit, -_PROBE_MARGIN))
+            sw += w
+            m1 += w * d
+            m2 += w * d * d
+        if sw > 1.0:
+            res[1] = v + m2 / sw - (m1 / sw) ** 2
 
 
 @nb.njit(cache=True, error_model="numpy")
