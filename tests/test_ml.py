@@ -160,6 +160,19 @@ def _one_pixel(t: list[int], p: list[int], c_on: float, c_off: float,
                        priors=pri)
 
 
+def _one_imx636_pixel(t: list[int], p: list[int]) -> ml.MlResult:
+    """``ml`` on one pixel of the IMX636 (its whole model, background events included) with
+    its default rig and the nominal thresholds: its events, times from the window's start."""
+    ev = np.zeros(len(t), dtype=EVENT_DTYPE)
+    ev["t"] = t
+    ev["p"] = p
+    sensor = get_preset("imx636")
+    rig = default_rig("imx636")
+    model = ml.cached_model(rig, sensor, window_us=rig.ramp_us)
+    return ml.estimate(ev, width=1, height=1, starts_us=np.array([0]), model=model,
+                       priors=ml.thresholds_prior(sensor, width=1, height=1))
+
+
 def test_a_pull_bounded_on_the_way_does_not_keep_a_worse_optimum() -> None:
     # One pixel of the Desk scene (0.25 lux) simulated with the IMX636 and two round trips
     # (L_const 105.4 lux). The start (the first turn's net change) says 8.2 lux. From there, least
@@ -765,14 +778,7 @@ def test_a_fit_in_the_profiles_shallower_optimum_is_moved_to_the_likelier_one() 
          75655, 76986, 79640, 110806, 114670, 120944, 126802, 132332, 137913, 145527,
          160839, 162244, 163363, 164268, 165088, 166106, 167749, 172137]
     p = [-1] * 4 + [1] + [-1] * 3 + [1] * 7 + [-1] * 7 + [1] * 8
-    ev = np.zeros(len(t), dtype=EVENT_DTYPE)
-    ev["t"] = t
-    ev["p"] = p
-    sensor = get_preset("imx636")
-    rig = default_rig("imx636")
-    model = ml.cached_model(rig, sensor, window_us=rig.ramp_us)
-    res = ml.estimate(ev, width=1, height=1, starts_us=np.array([0]), model=model,
-                      priors=ml.thresholds_prior(sensor, width=1, height=1))
+    res = _one_imx636_pixel(t, p)
     assert int(res.flags[0, 0, 0]) == 0
     g = math.log(float(res.radiance[0, 0, 0]))
     assert abs(g - math.log(0.3286)) < 0.3  # 0.40 lux, deviation 0.07 (it was 1.85 off)
@@ -786,14 +792,7 @@ def test_a_second_optimum_of_near_equal_likelihood_widens_the_stated_deviation()
     # mixture of the fit and the profile's points (0.24), the truth within 2 of it.
     t = [26105, 41762, 70109, 73010, 74938, 115149, 130823, 160373, 163101, 164970, 178534]
     p = [-1, -1, 1, 1, 1, -1, -1, 1, 1, 1, -1]
-    ev = np.zeros(len(t), dtype=EVENT_DTYPE)
-    ev["t"] = t
-    ev["p"] = p
-    sensor = get_preset("imx636")
-    rig = default_rig("imx636")
-    model = ml.cached_model(rig, sensor, window_us=rig.ramp_us)
-    res = ml.estimate(ev, width=1, height=1, starts_us=np.array([0]), model=model,
-                      priors=ml.thresholds_prior(sensor, width=1, height=1))
+    res = _one_imx636_pixel(t, p)
     assert int(res.flags[0, 0, 0]) == 0
     sd = float(res.sigma_log[0, 0, 0])
     err = math.log(float(res.radiance[0, 0, 0]) / 16.3097)
