@@ -1003,6 +1003,24 @@ def _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
         + ((res[2] - mu_u) / su) ** 2
 
 
+@nb.njit(cache=True, inline="always", error_model="numpy")
+def _level_change(mode, j, w, e, m, prev, dead, base, k_ev, sr2, tq2, eq2, exact, v0a, v0b,
+                  rows, dlog, locate):
+    """An event's level change at slot ``m`` for the ``g`` that :func:`_at_g` gave ``(j, w,
+    e)`` (:func:`_normal`'s equation without its thresholds and start offset): ``V`` at its
+    crossing less its reference (the level at the end of the dead time after slot ``prev``,
+    else ``base``: the cycle start's level, or the walk's), that equation's variance
+    without the start offset's (``k_ev``: the walk's events so far), and ``V'`` at the
+    crossing."""
+    vc, _, dtc = _eval(mode, j, w, e, m, False, exact, v0a, v0b, rows, dlog, locate)
+    if not dead:
+        return vc - base, sr2 * k_ev + dtc * dtc * tq2, dtc
+    if prev < 0:
+        return vc - base, sr2 + dtc * dtc * tq2, dtc
+    ref, _, dte = _eval(mode, j, w, e, prev, True, exact, v0a, v0b, rows, dlog, locate)
+    return vc - ref, sr2 + dtc * dtc * tq2 + dte * dte * eq2, dtc
+
+
 @nb.njit(cache=True, error_model="numpy")
 def _profile_scan(a0, step, n_g, mode, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, exact,
                   v0a, v0b, rows, g0, dlog, locate, wmax, uu, first_var, s1, s2, skip,
@@ -1064,19 +1082,17 @@ def _profile_scan(a0, step, n_g, mode, con, coff, t, p, lo, hi, dead, sr2, tq2, 
             jq = int(work[q, 0])
             wq = work[q, 1]
             eq = work[q, 2]
-            vc, _, dtc = _eval(mode, jq, wq, eq, m, False, exact, v0a, v0b, rows, dlog, locate)
+            d, var, _ = _level_change(mode, jq, wq, eq, m, prev, dead, work[q, 3], k_ev, sr2,
+                                      tq2, eq2, exact, v0a, v0b, rows, dlog, locate)
             if dead:
                 if prev < 0:
-                    r = vc - work[q, 3] - uu - step_c
-                    var = sr2 + dtc * dtc * tq2 + first_var
+                    r = d - uu - step_c
+                    var = var + first_var
                 else:
-                    ref, _, dte = _eval(mode, jq, wq, eq, prev, True, exact, v0a, v0b, rows,
-                                        dlog, locate)
-                    r = vc - ref - step_c
-                    var = sr2 + dtc * dtc * tq2 + dte * dte * eq2
+                    r = d - step_c
             else:
-                r = vc - work[q, 3] - has_u * uu - step_c
-                var = sr2 * k_ev + dtc * dtc * tq2 + has_u * first_var
+                r = d - has_u * uu - step_c
+                var = var + has_u * first_var
             if var < 1e-12:
                 var = 1e-12
             w = 1.0 / var
@@ -1419,20 +1435,8 @@ def _profile_values(gs, lo, hi, t, p, mode, dead, sr2, tq2, eq2, exact, v0a, v0b
             buf[k, 1] = -n_on
             buf[k, 2] = n_off
         for q in range(n_g):
-            vc, _, dtc = _eval(mode, js[q], ws[q], es[q], m, False, exact, v0a, v0b, rows,
-                               dlog, locate)
-            if dead:
-                if prev < 0:
-                    d = vc - vs[q]
-                    var = sr2 + dtc * dtc * tq2
-                else:
-                    ref, _, dte = _eval(mode, js[q], ws[q], es[q], prev, True, exact, v0a,
-                                        v0b, rows, dlog, locate)
-                    d = vc - ref
-                    var = sr2 + dtc * dtc * tq2 + dte * dte * eq2
-            else:
-                d = vc - vs[q]
-                var = sr2 * (k + 1) + dtc * dtc * tq2
+            d, var, dtc = _level_change(mode, js[q], ws[q], es[q], m, prev, dead, vs[q], k + 1,
+                                        sr2, tq2, eq2, exact, v0a, v0b, rows, dlog, locate)
             buf[k, 3 + 3 * q] = d
             buf[k, 4 + 3 * q] = max(var, 1e-12)
             buf[k, 5 + 3 * q] = abs(dtc)
@@ -2844,26 +2848,23 @@ def reconstruct_ml(
         res = estimate(ev, starts_us=starts, priors=priors,
                        pixel_progress=None if progress is None else
                        (lambda done, total: progress(stage, done, total)), **kw)
-    if defects is not None:
-        dead = np.asarray(defects, dtype=bool)
-        if dead.shape != (h, w):
-            raise ValueError(f"ml: the defect map is {dead.shape}, the recording {(h, w)}")
-        for c in range(res.radiance.shape[0]):
+    mapped = None if defects is None else np.asarray(defects, dtype=bool)
+    if mapped is not None and mapped.shape != (h, w):
+        raise ValueError(f"ml: the defect map is {mapped.shape}, the recording {(h, w)}")
+    for c in range(res.radiance.shape[0]):
+        silent = res.n_events[c] == 0
+        if mapped is not None:
             # a dead pixel's silence is no estimate from silence
-            silent = dead & (res.n_events[c] == 0)
-            res.radiance[c][silent] = np.nan
-            res.sigma_log[c][silent] = np.nan
-            res.flags[c][silent] = FLAG_NO_EVENTS
-            res.radiance[c], filled = fill_defects(res.radiance[c], dead)
-            res.flags[c][filled] |= FLAG_FILLED
-    else:
-        for c in range(res.radiance.shape[0]):
+            dead = mapped
+            res.radiance[c][dead & silent] = np.nan
+            res.sigma_log[c][dead & silent] = np.nan
+            res.flags[c][dead & silent] = FLAG_NO_EVENTS
+        else:
             # the silent pixels the fit took for dead (their neighbours say the signal
-            # swung far enough to fire), filled as the map's would be
-            dead = (res.flags[c] == FLAG_NO_EVENTS) & (res.n_events[c] == 0)
-            if dead.any():
-                res.radiance[c], filled = fill_defects(res.radiance[c], dead)
-                res.flags[c][filled] |= FLAG_FILLED
+            # swung far enough to fire)
+            dead = silent & (res.flags[c] == FLAG_NO_EVENTS)
+        res.radiance[c], filled = fill_defects(res.radiance[c], dead)
+        res.flags[c][filled] |= FLAG_FILLED
     if out is not None:
         out.update(sigma_log=res.sigma_log, flags=res.flags, c_on=res.c_on, c_off=res.c_off,
                    n_events=res.n_events)
