@@ -784,6 +784,27 @@ def test_a_fit_in_the_profiles_shallower_optimum_is_moved_to_the_likelier_one() 
     assert abs(g - math.log(0.3286)) < 0.3  # 0.40 lux, deviation 0.07 (it was 1.85 off)
 
 
+def test_a_fit_gauss_newton_holds_off_the_profiles_optimum_is_walked_there() -> None:
+    # One pixel at 18.2 lux (half of L_const on the IMX636's default rig) of a simulated
+    # chart, nominal thresholds as its prior (its own: 0.219 and 0.288). One OFF event
+    # (96,311 us) sits near a turn of the signal, its level 0.02 from its reference: a
+    # background event at the truth. Gauss-Newton settled at 24.9 lux with a deviation of
+    # 0.016 (19 of them off), thresholds 0.189 and 0.222, and returned there from every
+    # point of the profile: its fixed point solves the likelihood's equations only nearly.
+    # The profile 0.3 below is likelier by 29 in -2 ln likelihood; that point, walked
+    # downhill on the profile, is the fit.
+    t = [14993, 21429, 26517, 40115, 69734, 72526, 74308, 96311, 105000, 111140, 116101,
+         126923, 159990, 162691, 164410]
+    p = [1, -1, -1, -1, 1, 1, 1, -1, 1, -1, -1, -1, 1, 1, 1]
+    res = _one_imx636_pixel(t, p)
+    assert int(res.flags[0, 0, 0]) == 0
+    sd = float(res.sigma_log[0, 0, 0])
+    err = math.log(float(res.radiance[0, 0, 0]) / 18.2335)
+    assert abs(err) < 0.1  # 0.018 off, deviation 0.029 (it was 0.312 off)
+    assert abs(err) < 3.0 * sd
+    assert abs(float(res.c_off[0, 0, 0]) - 0.288) < 0.02
+
+
 def test_a_second_optimum_of_near_equal_likelihood_widens_the_stated_deviation() -> None:
     # One pixel at 16.3 lux, near L_const (37 lux) on the IMX636's default rig, 11 events,
     # nominal thresholds. Its fit lies at 23.5 lux with a curvature's deviation of 0.014 in

@@ -161,13 +161,16 @@ _OUTLIER_Z2 = 16.0
 _DENSITY_FLOOR = 1e-300
 _THRESHOLD_Z = 2.5
 _SCAN_STEP = 0.2
-_PROBES = (0.5, 1.5)
+_PROBES = (0.15, 0.3, 0.5, 1.5)
 """A pixel's fit is checked against the likelihood's profile these distances either side
 in ``ln L`` (:func:`_probe`)."""
 _PROBE_MARGIN = 2.0
 """... and fitted again from a point of that profile whose ``-2 ln`` likelihood is lower
 by more than this (the Gauss-Newton fit is the likelihood's optimum only nearly: its
 variances are held within a step)."""
+_DESCENT_STEPS = (0.08, 0.04, 0.02, 0.01, 0.005)
+"""The compass steps in ``ln L`` that walk a point of the likelihood's profile downhill
+(:func:`_profile_descent`), coarse to fine."""
 _MODE_EXCESS = 4.0
 """A point of the profile (:func:`_probe`) widens a fit's stated deviation when its ``-2 ln``
 likelihood lies more than this below what the fit's own curvature predicts there."""
@@ -1445,12 +1448,12 @@ def _profile_values(gs, lo, hi, t, p, mode, dead, sr2, tq2, eq2, exact, v0a, v0b
 
 
 @nb.njit(cache=True, error_model="numpy")
-def _profile_from_values(buf, n, q, lam, c1, c2, s1, s2, su, mu_u):
+def _profile_from_values(buf, n, q, lam, c1, c2, s1, s2, su, mu_u, th):
     """The likelihood's profile at ``gs[q]`` of :func:`_profile_values`: ``(u, c_on,
     c_off)`` fitted with ``ln L`` held (weighted least squares with their priors, Huber's
     weights to convergence and then, with background events, two steps with the outlier
-    weights), and the objective there (:func:`_fit_nll`'s). Linear in those three, each
-    step is exact for its weights: no pass over the tables."""
+    weights) into ``th``, and the objective there (:func:`_fit_nll`'s). Linear in those
+    three, each step is exact for its weights: no pass over the tables."""
     col = 3 + 3 * q
     th0 = mu_u
     th1 = c1
@@ -1523,7 +1526,68 @@ def _profile_from_values(buf, n, q, lam, c1, c2, s1, s2, su, mu_u):
         f = math.exp(-0.5 * r * r / var) * buf[k, col + 2] / (math.sqrt(var)
                                                               * 2.5066282746310002)
         nll -= 2.0 * math.log(max(f + lam_nll, _DENSITY_FLOOR))
+    th[0] = th0
+    th[1] = th1
+    th[2] = th2
     return nll + ((th1 - c1) / s1) ** 2 + ((th2 - c2) / s2) ** 2 + ((th0 - mu_u) / su) ** 2
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _profile_descent(res, o, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
+                     rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u):
+    """A point ``res`` of the likelihood's profile (``ln L``, and ``(u, c_on, c_off)`` in
+    ``res[2:5]``; objective ``o``) walked downhill on that profile by compass steps
+    (:data:`_DESCENT_STEPS`, each as long as it gains; one pass over the events for both
+    sides, :func:`_profile_values`). No derivative is taken: the walk finds the profile's
+    optimum where Gauss-Newton's fixed point is not it (an event near a turn of the
+    signal, whose time says much about ``L``, makes the profile rugged). Returns the
+    objective at ``res``; ``res[1]`` is left for :func:`_information`."""
+    n = hi - lo
+    buf = np.empty((n, 9))
+    gs = np.empty(2)
+    th = np.empty(3)
+    g = res[0]
+    for step in _DESCENT_STEPS:
+        for _rep in range(4):
+            gs[0] = max(g - step, g_lo)
+            gs[1] = min(g + step, g_hi)
+            _profile_values(gs, lo, hi, t, p, mode, dead, sr2, tq2, eq2, exact, v0a, v0b,
+                            rows, g0, dlog, locate, wmax, buf)
+            best = -1
+            for q in range(2):
+                if gs[q] == g:
+                    continue
+                oq = _profile_from_values(buf, n, q, lam, c1, c2, s1, s2, su, mu_u, th)
+                if oq < o:
+                    o = oq
+                    best = q
+                    res[2] = th[0]
+                    res[3] = th[1]
+                    res[4] = th[2]
+            if best < 0:
+                break
+            g = gs[best]
+    res[0] = g
+    return o
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _information(g, u, con, coff, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a,
+                 v0b, rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su, h, bvec, x, lmat, wy,
+                 wz, stat):
+    """The Gauss-Newton matrix at ``(g, u, c_on, c_off)`` (the events with the outlier
+    weights, and the priors), factored into ``lmat`` (:func:`_solve4`): ``(ok, var_g)``,
+    the variance of ``ln L`` with the others marginalised."""
+    h[:, :] = 0.0
+    bvec[:] = 0.0
+    _normal(mode, g, u, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
+            rows, g0, dlog, locate, wmax, h, bvec, 0.0, np.int64(-1), np.int64(-1), stat,
+            -1.0, 0.0)
+    h[1, 1] += 1.0 / (su * su)
+    h[2, 2] += 1.0 / (s1 * s1)
+    h[3, 3] += 1.0 / (s2 * s2)
+    _mirror(h)
+    return _solve4(h, bvec, x, lmat, wy, wz)
 
 
 @nb.njit(cache=True, error_model="numpy")
@@ -1534,27 +1598,34 @@ def _probe(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, r
     :data:`_PROBES` either side of it (:func:`_profile_values`, one pass for all):
     wherever the profile is likelier, the fit from there, likeliest first (the profile can
     have a second, shallower optimum, and a start biased by the thresholds' mismatch
-    falls into it); the likeliest fit stays in ``res``. ``saved[0:11]`` is work space."""
+    falls into it); where Gauss-Newton leaves that point for a less likely one, the point
+    itself walked down the profile (:func:`_profile_descent`). The likeliest fit stays in
+    ``res``; its deviation is widened where the profile either side says the likelihood
+    has mass its curvature does not see. ``saved[0:11]`` is work space."""
     none = np.int64(-1)
     o_fit = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
                      rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su, mu_u, none, none, h,
                      bvec, st_o)
     g = res[0]
     n_p = len(_PROBES)
-    gs = np.empty(2 * n_p)
+    gs = np.empty(2 * n_p + 1)
     for k in range(n_p):
         gs[2 * k] = min(max(g - _PROBES[k], g_lo), g_hi)
         gs[2 * k + 1] = min(max(g + _PROBES[k], g_lo), g_hi)
     n = hi - lo
-    buf = np.empty((n, 3 + 3 * gs.shape[0]))
-    _profile_values(gs, lo, hi, t, p, mode, dead, sr2, tq2, eq2, exact, v0a, v0b, rows, g0,
-                    dlog, locate, wmax, buf)
-    obj = np.empty(gs.shape[0])
-    for q in range(gs.shape[0]):
+    n_g = 2 * n_p
+    buf = np.empty((n, 3 + 3 * n_g))
+    _profile_values(gs[:n_g], lo, hi, t, p, mode, dead, sr2, tq2, eq2, exact, v0a, v0b, rows,
+                    g0, dlog, locate, wmax, buf)
+    obj = np.empty(n_g + 1)
+    th = np.empty((n_g, 3))
+    for q in range(n_g):
         obj[q] = np.inf
         if abs(gs[q] - g) >= 0.5 * _PROBES[0]:
-            obj[q] = _profile_from_values(buf, n, q, lam, c1, c2, s1, s2, su, mu_u)
-    for q in np.argsort(obj):
+            obj[q] = _profile_from_values(buf, n, q, lam, c1, c2, s1, s2, su, mu_u, th[q])
+    gs[n_g] = g  # the first fit, a point of the profile once another is chosen
+    obj[n_g] = o_fit
+    for q in np.argsort(obj[:n_g]):
         if not obj[q] < o_fit - _PROBE_MARGIN:
             break
         _save(res, stat, saved, 0)
@@ -1564,21 +1635,37 @@ def _probe(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, r
         o_new = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
                          rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su, mu_u, none, none,
                          h, bvec, st_o)
+        if not o_new < obj[q]:
+            # Gauss-Newton went from the likelier point to a less likely one (its fixed
+            # point solves the likelihood's equations only nearly, and its first phase,
+            # Huber's, can lead to another basin): the point itself, walked downhill
+            res[0] = gs[q]
+            res[2] = th[q, 0]
+            res[3] = th[q, 1]
+            res[4] = th[q, 2]
+            o_new = _profile_descent(res, obj[q], lo, hi, t, p, mode, dead, sr2, tq2, eq2,
+                                     lam, exact, v0a, v0b, rows, g0, dlog, locate, wmax,
+                                     g_lo, g_hi, c1, c2, s1, s2, su, mu_u)
+            ok, v = _information(res[0], res[2], res[3], res[4], lo, hi, t, p, mode, dead,
+                                 sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0, dlog, locate,
+                                 wmax, c1, c2, s1, s2, su, h, bvec, x, lmat, wy, wz, st_o)
+            res[1] = v if ok else np.nan
         if o_new < o_fit:
             o_fit = o_new
         else:
             _load(res, stat, saved, 0)
-    if res[0] == g and res[1] > 0.0:
-        # the fit stays: where the profile lies well below what the fit's own curvature
-        # predicts there, the likelihood has mass the curvature does not see (a second
-        # optimum of near-equal likelihood); the variance is that of the mixture of the
-        # fit and those points, each as wide as the fit and weighed by its likelihood
+    if res[1] > 0.0:
+        # where the profile lies well below what the fit's own curvature predicts there,
+        # the likelihood has mass the curvature does not see (a second optimum of
+        # near-equal likelihood); the variance is that of the mixture of the fit and those
+        # points (the first fit among them when another was chosen), each as wide as the
+        # fit and weighed by its likelihood
         v = res[1]
         sw = 1.0
         m1 = 0.0
         m2 = 0.0
-        for q in range(gs.shape[0]):
-            d = gs[q] - g
+        for q in range(n_g + 1):
+            d = gs[q] - res[0]
             if not obj[q] < np.inf or d * d / v - (obj[q] - o_fit) <= _MODE_EXCESS:
                 continue
             w = math.exp(-0.5 * max(obj[q] - o_fit, -_PROBE_MARGIN))
@@ -1820,39 +1907,44 @@ def _estimate_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
 
 @nb.njit(cache=True, error_model="numpy")
 def _threshold_sd_at(px, off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
-                     g0, dlog, locate, wmax, con0, coff0, scon, scoff, u_sd, fit_g, fit_u,
-                     fit_con, fit_coff, fit_flag, out_son, out_soff, h, bvec, x, lmat, wy,
-                     wz, stat):
+                     g0, dlog, locate, wmax, con0, coff0, scon, scoff, u_sd, fit_g, fit_sd,
+                     fit_u, fit_con, fit_coff, fit_flag, out_son, out_soff, h, bvec, x, lmat,
+                     wy, wz, stat):
     """:func:`_threshold_sd_kernel` for pixel ``px`` (the rest are work space)."""
     out_son[px] = np.nan
     out_soff[px] = np.nan
     if fit_flag[px] != 0:
         return
-    h[:, :] = 0.0
-    bvec[:] = 0.0
     c1 = con0[px]
     c2 = coff0[px]
     s1 = max(scon[px], 1e-6)
     s2 = max(scoff[px], 1e-6)
     su, _ = _u_prior(c1, c2, u_sd)
-    _normal(mode, fit_g[px], fit_u[px], fit_con[px], fit_coff[px], t, p, off[px],
-            off[px + 1], dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0, dlog,
-            locate, wmax, h, bvec, 0.0, np.int64(-1), np.int64(-1), stat, -1.0, 0.0)
-    h[1, 1] += 1.0 / (su * su)
-    h[2, 2] += 1.0 / (s1 * s1)
-    h[3, 3] += 1.0 / (s2 * s2)
-    _mirror(h)
-    ok, _ = _solve4(h, bvec, x, lmat, wy, wz)
+    ok, v_g = _information(fit_g[px], fit_u[px], fit_con[px], fit_coff[px], off[px],
+                           off[px + 1], t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
+                           rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su, h, bvec, x, lmat,
+                           wy, wz, stat)
     if not ok:
         return
-    out_son[px] = math.sqrt(_inv_diag(lmat, 2, wz))
-    out_soff[px] = math.sqrt(_inv_diag(lmat, 3, wz))
+    z_g = wz.copy()  # L^-1 e_0: (h^-1)[k, 0] = z_k . z_g
+    # the fit's variance of ln L beyond this matrix's (a second optimum, :func:`_probe`)
+    # carries the thresholds along the ridge they share with ln L
+    extra = max(fit_sd[px] * fit_sd[px] - v_g, 0.0) if v_g > 0.0 else 0.0
+    v = np.empty(2)
+    for q in range(2):
+        v[q] = _inv_diag(lmat, 2 + q, wz)
+        cov = 0.0
+        for i in range(4):
+            cov += wz[i] * z_g[i]
+        v[q] += (cov / v_g) ** 2 * extra if extra > 0.0 else 0.0
+    out_son[px] = math.sqrt(v[0])
+    out_soff[px] = math.sqrt(v[1])
 
 
 @nb.njit(cache=True, parallel=True, error_model="numpy")
 def _threshold_sd_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
                          g0, dlog, locate, wmax, con0, coff0, scon, scoff, u_sd, fit_g,
-                         fit_u, fit_con, fit_coff, fit_flag, out_son, out_soff):
+                         fit_sd, fit_u, fit_con, fit_coff, fit_flag, out_son, out_soff):
     """The posterior standard deviations of every fitted pixel's ``c_on`` and ``c_off``
     (the others marginalised): the inverse of the Gauss-Newton matrix at its fit, its
     events with the outlier weights and its priors; NaN where the pixel has no fit (flag
@@ -1863,8 +1955,8 @@ def _threshold_sd_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, 
         for px in range(blk * _BLOCK, min(npx, (blk + 1) * _BLOCK)):
             _threshold_sd_at(px, off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
                              rows, g0, dlog, locate, wmax, con0, coff0, scon, scoff, u_sd,
-                             fit_g, fit_u, fit_con, fit_coff, fit_flag, out_son, out_soff, h,
-                             bvec, x, lmat, wy, wz, stat)
+                             fit_g, fit_sd, fit_u, fit_con, fit_coff, fit_flag, out_son,
+                             out_soff, h, bvec, x, lmat, wy, wz, stat)
 
 
 _NEIGHBOUR_GAP = 0.5
@@ -2569,8 +2661,8 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
                              eq2, model.noise_rate_per_us, model.exact, model.v0[0],
                              model.v0[1], model.rows, model.g0, model.dlog, model.locate,
                              np.int64(model.window_us), con, coff, scon, scoff,
-                             float(start_sigma), out_g, out_u, out_con, out_coff, out_flag,
-                             son, soff)
+                             float(start_sigma), out_g, out_sd, out_u, out_con, out_coff,
+                             out_flag, son, soff)
         return out_g, out_sd, out_con, out_coff, out_flag, counts, son, soff
     return out_g, out_sd, out_con, out_coff, out_flag, counts
 
