@@ -14,6 +14,7 @@ from asynhdr.design import default_rig, round_trip_rig, sequential_rig, two_roun
 from asynhdr.events import EVENT_DTYPE, Recording
 from asynhdr.reconstruct import CycleWindows, reconstruct
 from asynhdr.rig import Rig
+from asynhdr.scene import flat_field
 from asynhdr.sensor.params import get_preset
 from asynhdr.simulate import draw_thresholds, simulate
 
@@ -803,6 +804,35 @@ def test_a_fit_gauss_newton_holds_off_the_profiles_optimum_is_walked_there() -> 
     assert abs(err) < 0.1  # 0.018 off, deviation 0.029 (it was 0.312 off)
     assert abs(err) < 3.0 * sd
     assert abs(float(res.c_off[0, 0, 0]) - 0.288) < 0.02
+
+
+def test_half_l_const_fits_and_their_thresholds_within_their_stated_deviations() -> None:
+    # A flat field at 18.2 lux, half of L_const on the IMX636's default rig: the signal
+    # swings by ln 2 a ramp, 10 to 20 events a cycle, and ln L trades against the
+    # thresholds along a ridge. The second cycle, nominal thresholds as the prior (the
+    # pixels' own drawn with spread 0.05). Before the profile's walk and the thresholds'
+    # widening along the ridge: RMS error in ln L 0.053, 69 of 2,304 fits more than three
+    # stated deviations off, the OFF thresholds' errors 2.2 stated deviations RMS.
+    w = h = 48
+    sensor = get_preset("imx636")
+    rig = default_rig("imx636")
+    rec = simulate(flat_field(width=w, height=h, radiance=18.2), rig=rig, sensor=sensor,
+                   n_cycles=2, rng=3, sensor_seed=5)
+    c_on, c_off = draw_thresholds(sensor, width=w, height=h, rng=np.random.default_rng(5))
+    res = ml.estimate(rec.events, width=w, height=h, starts_us=np.array([int(rig.period_us)]),
+                      model=ml.cached_model(rig, sensor, window_us=rig.ramp_us),
+                      priors=ml.thresholds_prior(sensor, width=w, height=h), threshold_sd=True)
+    assert res.sd_on is not None and res.sd_off is not None
+    ok = res.flags[0] == 0
+    assert ok.mean() > 0.99
+    err = np.log(res.radiance[0][ok] / 18.2)
+    z = err / res.sigma_log[0][ok]
+    z_on = (res.c_on[0] - c_on)[ok] / res.sd_on[0][ok]
+    z_off = (res.c_off[0] - c_off)[ok] / res.sd_off[0][ok]
+    assert math.sqrt(np.mean(err ** 2)) < 0.045  # 0.034
+    assert np.mean(np.abs(z) > 3.0) < 0.02  # 20 of 2,304
+    assert math.sqrt(np.mean(z_on ** 2)) < 1.25  # 1.05
+    assert math.sqrt(np.mean(z_off ** 2)) < 1.6  # 1.28
 
 
 def test_a_second_optimum_of_near_equal_likelihood_widens_the_stated_deviation() -> None:
