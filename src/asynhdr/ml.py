@@ -1452,12 +1452,13 @@ def _profile_from_values(buf, n, q, lam, c1, c2, s1, s2, su, mu_u, th):
     """The likelihood's profile at ``gs[q]`` of :func:`_profile_values`: ``(u, c_on,
     c_off)`` fitted with ``ln L`` held (weighted least squares with their priors, Huber's
     weights to convergence and then, with background events, two steps with the outlier
-    weights) into ``th``, and the objective there (:func:`_fit_nll`'s). Linear in those
-    three, each step is exact for its weights: no pass over the tables."""
+    weights), and the objective there (:func:`_fit_nll`'s). ``th`` holds the start (a fit's
+    nearby, which Huber's phase then reaches in few steps) and receives the result.
+    Linear in those three, each step is exact for its weights: no pass over the tables."""
     col = 3 + 3 * q
-    th0 = mu_u
-    th1 = c1
-    th2 = c2
+    th0 = th[0]
+    th1 = th[1]
+    th2 = th[2]
     p0 = 1.0 / (su * su)
     p1 = 1.0 / (s1 * s1)
     p2 = 1.0 / (s2 * s2)
@@ -1557,6 +1558,9 @@ def _profile_descent(res, o, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact
             for q in range(2):
                 if gs[q] == g:
                     continue
+                th[0] = res[2]
+                th[1] = res[3]
+                th[2] = res[4]
                 oq = _profile_from_values(buf, n, q, lam, c1, c2, s1, s2, su, mu_u, th)
                 if oq < o:
                     o = oq
@@ -1622,6 +1626,9 @@ def _probe(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, r
     for q in range(n_g):
         obj[q] = np.inf
         if abs(gs[q] - g) >= 0.5 * _PROBES[0]:
+            th[q, 0] = res[2]
+            th[q, 1] = res[3]
+            th[q, 2] = res[4]
             obj[q] = _profile_from_values(buf, n, q, lam, c1, c2, s1, s2, su, mu_u, th[q])
     gs[n_g] = g  # the first fit, a point of the profile once another is chosen
     obj[n_g] = o_fit
@@ -1926,19 +1933,23 @@ def _threshold_sd_at(px, off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, 
                            wy, wz, stat)
     if not ok:
         return
-    z_g = wz.copy()  # L^-1 e_0: (h^-1)[k, 0] = z_k . z_g
+    # wz holds L^-1 e_0: (h^-1)[k, 0] = (L^-1 e_k) . (L^-1 e_0)
+    z0 = wz[0]
+    z1 = wz[1]
+    z2 = wz[2]
+    z3 = wz[3]
     # the fit's variance of ln L beyond this matrix's (a second optimum, :func:`_probe`)
     # carries the thresholds along the ridge they share with ln L
     extra = max(fit_sd[px] * fit_sd[px] - v_g, 0.0) if v_g > 0.0 else 0.0
-    v = np.empty(2)
-    for q in range(2):
-        v[q] = _inv_diag(lmat, 2 + q, wz)
-        cov = 0.0
-        for i in range(4):
-            cov += wz[i] * z_g[i]
-        v[q] += (cov / v_g) ** 2 * extra if extra > 0.0 else 0.0
-    out_son[px] = math.sqrt(v[0])
-    out_soff[px] = math.sqrt(v[1])
+    for k in (2, 3):
+        v = _inv_diag(lmat, k, wz)
+        if extra > 0.0:
+            cov = wz[0] * z0 + wz[1] * z1 + wz[2] * z2 + wz[3] * z3
+            v += (cov / v_g) ** 2 * extra
+        if k == 2:
+            out_son[px] = math.sqrt(v)
+        else:
+            out_soff[px] = math.sqrt(v)
 
 
 @nb.njit(cache=True, parallel=True, error_model="numpy")
