@@ -806,6 +806,22 @@ def test_a_fit_gauss_newton_holds_off_the_profiles_optimum_is_walked_there() -> 
     assert abs(float(res.c_off[0, 0, 0]) - 0.288) < 0.02
 
 
+def test_an_optimum_a_factor_e_away_is_found_between_the_far_checks() -> None:
+    # One pixel at 13.3 lux of the speed benchmark's scene (IMX636, default rig, nominal
+    # thresholds). The fit sat at 37.0 lux, L_const, with a deviation of 0.19 (1.02 off
+    # in ln L); the profile 1.0 below it was likelier by 48 in -2 ln likelihood, and the
+    # checks at 0.5 and 1.5 either side did not see it. With a check at 1.0 the fit from
+    # there is at the truth.
+    t = [23187, 28635, 40929, 67436, 67641, 71270, 73377, 74843, 77780, 111620, 116916,
+         126339, 160982, 163085, 164704]
+    p = [-1, -1, -1, 1, 1, 1, 1, 1, -1, -1, -1, -1, 1, 1, 1]
+    res = _one_imx636_pixel(t, p)
+    assert int(res.flags[0, 0, 0]) == 0
+    err = math.log(float(res.radiance[0, 0, 0]) / 13.322)
+    assert abs(err) < 0.1  # 0.023 off, deviation 0.032
+    assert abs(err) < 3.0 * float(res.sigma_log[0, 0, 0])
+
+
 def test_half_l_const_fits_and_their_thresholds_within_their_stated_deviations() -> None:
     # A flat field at 18.2 lux, half of L_const on the IMX636's default rig: the signal
     # swings by ln 2 a ramp, 10 to 20 events a cycle, and ln L trades against the

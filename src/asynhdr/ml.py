@@ -161,7 +161,7 @@ _OUTLIER_Z2 = 16.0
 _DENSITY_FLOOR = 1e-300
 _THRESHOLD_Z = 2.5
 _SCAN_STEP = 0.2
-_PROBES = (0.15, 0.3, 0.5, 1.5)
+_PROBES = (0.15, 0.3, 0.5, 1.0, 1.5)
 """A pixel's fit is checked against the likelihood's profile these distances either side
 in ``ln L`` (:func:`_probe`)."""
 _PROBE_MARGIN = 2.0
