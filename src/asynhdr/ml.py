@@ -168,9 +168,11 @@ _PROBE_MARGIN = 2.0
 """... and fitted again from a point of that profile whose ``-2 ln`` likelihood is lower
 by more than this (the Gauss-Newton fit is the likelihood's optimum only nearly: its
 variances are held within a step)."""
-_DESCENT_STEPS = (0.08, 0.04, 0.02, 0.01, 0.005)
-"""The compass steps in ``ln L`` that walk a point of the likelihood's profile downhill
-(:func:`_profile_descent`), coarse to fine."""
+_DESCENT_STEP = 0.08
+"""The first compass step in ``ln L`` of the walk downhill on the likelihood's profile
+(:func:`_profile_descent`); the steps halve from there ..."""
+_DESCENT_LEVELS = 16
+"""... at most this many times (0.08 / 2^15: 2.4e-6)."""
 _MODE_EXCESS = 4.0
 """A point of the profile (:func:`_probe`) widens a fit's stated deviation when its ``-2 ln``
 likelihood lies more than this below what the fit's own curvature predicts there."""
@@ -1537,18 +1539,23 @@ def _profile_from_values(buf, n, q, lam, c1, c2, s1, s2, su, mu_u, th):
 def _profile_descent(res, o, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
                      rows, g0, dlog, locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u):
     """A point ``res`` of the likelihood's profile (``ln L``, and ``(u, c_on, c_off)`` in
-    ``res[2:5]``; objective ``o``) walked downhill on that profile by compass steps
-    (:data:`_DESCENT_STEPS`, each as long as it gains; one pass over the events for both
-    sides, :func:`_profile_values`). No derivative is taken: the walk finds the profile's
-    optimum where Gauss-Newton's fixed point is not it (an event near a turn of the
-    signal, whose time says much about ``L``, makes the profile rugged). Returns the
-    objective at ``res``; ``res[1]`` is left for :func:`_information`."""
+    ``res[2:5]``; objective ``o``) walked downhill on that profile by compass steps (from
+    :data:`_DESCENT_STEP`, each as long as it gains, then halved; one pass over the events
+    for both sides, :func:`_profile_values`) until a step is a quarter of the width the
+    parabola through the last three points gives, then to that parabola's vertex when
+    likelier. No derivative is taken: the walk finds the profile's optimum where
+    Gauss-Newton's fixed point is not it (an event near a turn of the signal, whose time
+    says much about ``L``, makes the profile rugged). Returns the objective at ``res``;
+    ``res[1]`` is left for :func:`_information`."""
     n = hi - lo
     buf = np.empty((n, 9))
     gs = np.empty(2)
     th = np.empty(3)
+    ob = np.empty(2)
     g = res[0]
-    for step in _DESCENT_STEPS:
+    step = _DESCENT_STEP
+    for _level in range(_DESCENT_LEVELS):
+        moved = True
         for _rep in range(4):
             gs[0] = max(g - step, g_lo)
             gs[1] = min(g + step, g_hi)
@@ -1556,21 +1563,46 @@ def _profile_descent(res, o, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact
                             rows, g0, dlog, locate, wmax, buf)
             best = -1
             for q in range(2):
+                ob[q] = np.inf
                 if gs[q] == g:
                     continue
                 th[0] = res[2]
                 th[1] = res[3]
                 th[2] = res[4]
-                oq = _profile_from_values(buf, n, q, lam, c1, c2, s1, s2, su, mu_u, th)
-                if oq < o:
-                    o = oq
+                ob[q] = _profile_from_values(buf, n, q, lam, c1, c2, s1, s2, su, mu_u, th)
+                if ob[q] < o and (best < 0 or ob[q] < ob[best]):
                     best = q
                     res[2] = th[0]
                     res[3] = th[1]
                     res[4] = th[2]
             if best < 0:
+                moved = False
                 break
+            o = ob[best]
             g = gs[best]
+        if not moved and ob[0] < np.inf and ob[1] < np.inf:
+            den = ob[0] + ob[1] - 2.0 * o
+            if den > 0.0:
+                # -2 ln L ~ (g - g_hat)^2 / var: the parabola's width sqrt(var)
+                width = step * math.sqrt(2.0 / den)
+                if step <= 0.25 * width:
+                    gv = g - 0.5 * step * (ob[1] - ob[0]) / den
+                    gs[0] = gv
+                    gs[1] = gv
+                    _profile_values(gs, lo, hi, t, p, mode, dead, sr2, tq2, eq2, exact,
+                                    v0a, v0b, rows, g0, dlog, locate, wmax, buf)
+                    th[0] = res[2]
+                    th[1] = res[3]
+                    th[2] = res[4]
+                    ov = _profile_from_values(buf, n, 0, lam, c1, c2, s1, s2, su, mu_u, th)
+                    if ov < o:
+                        o = ov
+                        g = gv
+                        res[2] = th[0]
+                        res[3] = th[1]
+                        res[4] = th[2]
+                    break
+        step *= 0.5
     res[0] = g
     return o
 
@@ -1626,9 +1658,9 @@ def _probe(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, r
     for q in range(n_g):
         obj[q] = np.inf
         if abs(gs[q] - g) >= 0.5 * _PROBES[0]:
-            th[q, 0] = res[2]
-            th[q, 1] = res[3]
-            th[q, 2] = res[4]
+            th[q, 0] = mu_u
+            th[q, 1] = c1
+            th[q, 2] = c2
             obj[q] = _profile_from_values(buf, n, q, lam, c1, c2, s1, s2, su, mu_u, th[q])
     gs[n_g] = g  # the first fit, a point of the profile once another is chosen
     obj[n_g] = o_fit
