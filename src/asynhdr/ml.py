@@ -1944,6 +1944,223 @@ def _estimate_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
             out_u[px] = res[5]
 
 
+# ----------------------------------------------------------------------------- fast
+
+
+_FAST_ITER = 12
+"""The fast fit's Newton steps at most (:func:`_fast_kernel`)."""
+_FAST_TOL = 0.1
+"""... until a step is below this share of the fit's standard deviation (or of the full
+fit's tolerance, :data:`_TOL_G`, for a fit more precise than that)."""
+_FAST_PROBES = (-0.5, 0.5, -1.0, 1.0, -2.0)
+"""... and where the held thresholds' likelihood is higher at one of these distances from
+the fast fit (by :data:`_PROBE_MARGIN`)."""
+_FAST_OUTLIER_Z2 = 9.0
+"""... then once more with the outlier weights when an event lies three deviations off."""
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _fast_pass(mode, g, lo, hi, t, p, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
+               dlog, locate, wmax, c1, c2, mu_u, su2, robust, acc, nll):
+    """One pass over a pixel's events at ``g`` with the thresholds held at ``c1``, ``c2``
+    and the start offset at its prior's mean ``mu_u`` (variance ``su2``, added to the
+    first equation's): the Newton sums of the one-parameter likelihood into ``acc``:
+    ``(sum w r J - sum jac, sum w J^2, sum_on w J, -sum_off w J, max z^2, sum w r^2)``
+    (the model of :func:`_normal`, its gradient's Jacobian term included; ``robust``: the
+    outlier weights at ``g``), and with ``nll`` the events' ``-2 sum ln(f_i + lambda)``
+    (:func:`_fit_nll`'s) in ``acc[6]``. Without a dead time the walk is taken from the
+    first event's level (``u`` drops out)."""
+    jg, wg, eg = _at_g(mode, g, g0, dlog, rows.shape[1])
+    vs, dgs, _ = _eval(mode, jg, wg, eg, -1, False, exact, v0a, v0b, rows, dlog, locate)
+    a = 0.0
+    b = 0.0
+    b_on = 0.0
+    b_off = 0.0
+    z_max = 0.0
+    chi2 = 0.0
+    nl = 0.0
+    prev = -1
+    base = vs
+    dbase = dgs
+    level = 0.0
+    k_ev = 0
+    var0 = 0.0
+    for i in range(lo, hi):
+        m = t[i]
+        if m >= wmax:
+            m = wmax - 1
+        vc, dgc, dtc = _eval(mode, jg, wg, eg, m, False, exact, v0a, v0b, rows, dlog, locate)
+        on = p[i] > 0
+        step = c1 if on else -c2
+        if dead:
+            if prev < 0:
+                ref = vs + mu_u
+                dref = dgs
+                var = sr2 + dtc * dtc * tq2 + su2
+            else:
+                ref, dref, dte = _eval(mode, jg, wg, eg, prev, True, exact, v0a, v0b, rows,
+                                       dlog, locate)
+                var = sr2 + dtc * dtc * tq2 + dte * dte * eq2
+            prev = m
+        else:
+            if prev < 0:
+                # the walk from the first event's level, the crossing it stamps
+                prev = m
+                base = vc
+                dbase = dgc
+                var0 = dtc * dtc * tq2
+                continue
+            k_ev += 1
+            level += step
+            ref = base + level - step
+            dref = dbase
+            var = sr2 * k_ev + dtc * dtc * tq2 + var0
+        r = vc - ref - step
+        jj = dgc - dref
+        if var < 1e-12:
+            var = 1e-12
+        w = 1.0 / var
+        z2 = r * r * w
+        if nll:
+            f = math.exp(-0.5 * z2) * abs(dtc) * math.sqrt(w) * 0.3989422804014327
+            nl -= 2.0 * math.log(max(f + lam, _DENSITY_FLOOR))
+            continue
+        if z2 > z_max:
+            z_max = z2
+        jac = 0.0
+        if dtc != 0.0:
+            jac = _slope_g(mode, jg, wg, eg, m, exact, rows, dlog, locate) / dtc
+            jac = min(max(jac, -_JACOBIAN_MAX), _JACOBIAN_MAX)
+        if robust:
+            f = math.exp(-0.5 * z2) * abs(dtc) * math.sqrt(w) * 0.3989422804014327
+            gam = f / (f + lam)
+            w *= gam
+            jac *= gam
+        chi2 += w * r * r
+        a += w * r * jj - jac
+        b += w * jj * jj
+        if on:
+            b_on += w * jj
+        else:
+            b_off -= w * jj
+    acc[0] = a
+    acc[1] = b
+    acc[2] = b_on
+    acc[3] = b_off
+    acc[4] = z_max
+    acc[5] = chi2
+    acc[6] = nl
+
+
+@nb.njit(cache=True, parallel=True, error_model="numpy")
+def _fast_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0, dlog,
+                 locate, wmax, g_lo, g_hi, net_g, net_v, min_events, con0, coff0, scon,
+                 scoff, out_g, out_sd, out_con, out_coff, out_flag, u_sd, split, net_v2,
+                 split2, order, out_u, out_full):
+    """Every pixel's fast fit (docs/ml.md, "The fast fit"): ``g`` alone, the thresholds
+    held at their priors (a calibration's), by Newton's method on the likelihood from
+    the net change's start (:func:`_fast_pass`; the outlier weights once an event lies
+    three deviations off). A fit that does not converge, reaches a bound or is vague,
+    whose chi-square lies beyond its spread, or whose likelihood is lower than at one of
+    the points :data:`_FAST_PROBES` away, is fitted in full (:func:`_fit_pixel`;
+    ``out_full[px]`` set). The variance adds the thresholds' spread through ``dg/dc``.
+    ``split2`` and ``net_v2`` are the full fit's."""
+    npx = off.shape[0] - 1
+    nblk = order.shape[0]
+    for bi in nb.prange(nblk):
+        blk = order[bi]
+        h, bvec, x, lmat, wy, wz, stat, st_o = _workspace()
+        acc = np.zeros(7)
+        res = np.zeros(6)
+        saved = np.zeros(22)
+        work = np.zeros(6)
+        scan = np.zeros((int((g_hi - g_lo) / (2.0 * _SCAN_STEP)) + 2, 10))
+        for px in range(blk * _BLOCK, min(npx, (blk + 1) * _BLOCK)):
+            lo = off[px]
+            hi = off[px + 1]
+            c1 = con0[px]
+            c2 = coff0[px]
+            out_con[px] = c1
+            out_coff[px] = c2
+            if hi - lo < min_events:
+                out_g[px] = np.nan
+                out_sd[px] = np.nan
+                out_flag[px] = FLAG_NO_EVENTS
+                continue
+            s1 = max(scon[px], 1e-6)
+            s2 = max(scoff[px], 1e-6)
+            su, mu_u = _u_prior(c1, c2, u_sd)
+            net = 0.0
+            for i in range(lo, hi):
+                if t[i] >= split:
+                    break
+                net += c1 if p[i] > 0 else -c2
+            g = _initial(net, net_g, net_v)
+            robust = False
+            converged = False
+            last = 0.0
+            for _ in range(_FAST_ITER):
+                _fast_pass(mode, g, lo, hi, t, p, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
+                           rows, g0, dlog, locate, wmax, c1, c2, mu_u, su * su, robust, acc,
+                           False)
+                if not acc[1] > 0.0:
+                    break
+                dg = min(max(-acc[0] / acc[1], -_MAX_STEP_G), _MAX_STEP_G)
+                if dg * last < 0.0 and abs(dg) > 0.5 * abs(last):
+                    # turning back by more than half the last step: the secant's point
+                    dg *= abs(last) / (abs(last) + abs(dg))
+                gn = min(max(g + dg, g_lo), g_hi)
+                last = gn - g
+                g = gn
+                if abs(last) < max(_FAST_TOL / math.sqrt(acc[1]), _FAST_TOL * _TOL_G):
+                    if robust or acc[4] < _FAST_OUTLIER_Z2 or lam <= 0.0:
+                        converged = True
+                        break
+                    robust = True
+                    last = 0.0
+            var = 1.0 / acc[1] if acc[1] > 0.0 else np.inf
+            # the thresholds held: their spread moves g by dg/dc = sum w J / sum w J^2
+            var += (acc[2] * acc[2] * s1 * s1 + acc[3] * acc[3] * s2 * s2) * var * var
+            n = hi - lo
+            flag = _fit_flag(g, var, g_lo, g_hi)
+            poor = not converged or flag != 0 or \
+                acc[5] > n + _CHI2_RESCUE * math.sqrt(2.0 * n) + 2.0
+            if not poor:
+                # the likelihood's profile (thresholds held) at a few points about the fit:
+                # a likelier one means another optimum, which the full fit weighs
+                _fast_pass(mode, g, lo, hi, t, p, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
+                           rows, g0, dlog, locate, wmax, c1, c2, mu_u, su * su, False, acc,
+                           True)
+                o_fit = acc[6]
+                for d in _FAST_PROBES:
+                    gq = min(max(g + d, g_lo), g_hi)
+                    if gq == g:
+                        continue
+                    _fast_pass(mode, gq, lo, hi, t, p, dead, sr2, tq2, eq2, lam, exact, v0a,
+                               v0b, rows, g0, dlog, locate, wmax, c1, c2, mu_u, su * su,
+                               False, acc, True)
+                    if acc[6] < o_fit - _PROBE_MARGIN:
+                        poor = True
+                        break
+            if poor:
+                _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
+                           rows, g0, dlog, locate, wmax, g_lo, g_hi, net_g, net_v, c1, c2, s1,
+                           s2, 0.0, 0.0, False, h, bvec, x, lmat, wy, wz, res, u_sd, stat,
+                           work, scan, split, st_o, net_v2, split2, saved)
+                out_g[px] = res[0]
+                out_sd[px] = res[1]
+                out_con[px] = res[2]
+                out_coff[px] = res[3]
+                out_flag[px] = np.uint8(res[4])
+                out_u[px] = res[5]
+                out_full[px] = 1
+                continue
+            out_g[px] = g
+            out_sd[px] = math.sqrt(var)
+            out_flag[px] = flag
+            out_u[px] = mu_u
+
+
 @nb.njit(cache=True, error_model="numpy")
 def _threshold_sd_at(px, off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
                      g0, dlog, locate, wmax, con0, coff0, scon, scoff, u_sd, fit_g, fit_sd,
@@ -2613,7 +2830,7 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
          min_events: int = 2, start_sigma: float = 0.0,
          progress: Callable[[int], None] | None = None,
          width: int = 0, neighbours: bool = True, threshold_sd: bool = False,
-         dead_fraction: float | None = None) -> tuple[np.ndarray, ...]:
+         dead_fraction: float | None = None, fast: bool = False) -> tuple[np.ndarray, ...]:
     """Every pixel's fit (:func:`_estimate_kernel`); ``progress(pixels_done)`` after each
     of :data:`_PROGRESS_PARTS` parts when given (the same fits, part by part). With
     ``width`` (the pixels an image of that width) and ``neighbours``, the neighbours' fits
@@ -2623,7 +2840,9 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
     (:func:`_sparse_kernel`; ``dead_fraction``: the share of dead pixels, default the
     model's).
     Returns ``(g, sd, c_on, c_off, flag, counts)``, and with ``threshold_sd`` the
-    thresholds' posterior standard deviations (:func:`_threshold_sd_kernel`) after them."""
+    thresholds' posterior standard deviations (:func:`_threshold_sd_kernel`) after them.
+    ``fast``: the fast fit (:func:`_fast_kernel`; no neighbours' starts, no thresholds'
+    deviations)."""
     con, coff, scon, scoff = (np.ascontiguousarray(a) for a in priors)
     counts = np.diff(off)
     out_g = np.empty(npx)
@@ -2639,7 +2858,21 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
     eq2 = model.res_us ** 2 / 12.0 + (model.jitter_us ** 2 if model.dead else 0.0)
     parts = 1 if progress is None else min(_PROGRESS_PARTS, max(1, npx // _BLOCK))
     edges = np.linspace(0, npx, parts + 1).astype(np.int64)
+    full = np.zeros(npx, np.uint8)
     for a, b in zip(edges[:-1].tolist(), edges[1:].tolist(), strict=True):
+        if fast and not fixed:
+            _fast_kernel(off[a:b + 1], t, p, model.mode, model.dead, model.reset_sigma ** 2,
+                         tq2, eq2, model.noise_rate_per_us, model.exact, model.v0[0],
+                         model.v0[1], model.rows, model.g0, model.dlog, model.locate,
+                         np.int64(model.window_us), model.g_lo, model.g_hi, model.net_g,
+                         model.net_v, np.int64(min_events), con[a:b], coff[a:b], scon[a:b],
+                         scoff[a:b], out_g[a:b], out_sd[a:b], out_con[a:b], out_coff[a:b],
+                         out_flag[a:b], float(start_sigma), np.int64(model.split_us),
+                         model.net_v2, np.int64(model.split2_us), block_order(b - a, _BLOCK),
+                         out_u[a:b], full[a:b])
+            if progress is not None:
+                progress(b)
+            continue
         _estimate_kernel(off[a:b + 1], t, p, model.mode, model.dead, model.reset_sigma ** 2,
                          tq2, eq2, model.noise_rate_per_us, model.exact, model.v0[0],
                          model.v0[1], model.rows, model.g0, model.dlog, model.locate,
@@ -2652,8 +2885,10 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
                          out_u[a:b])
         if progress is not None:
             progress(b)
+    if fast:
+        logger.debug("ml: %d of %d pixels fitted in full", int(full.sum()), npx)
     image = width > 0 and npx % width == 0
-    if neighbours and image and not fixed and not np.any(sp > 0.0):
+    if neighbours and image and not fixed and not fast and not np.any(sp > 0.0):
         todo = np.ones(npx, np.uint8)
         for _ in range(_NEIGHBOUR_SWEEPS):
             moved = np.zeros(npx, np.uint8)
@@ -2698,6 +2933,9 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
                 break
             few = left[counts[left] == 0]
     if threshold_sd:
+        if fast:
+            raise ValueError("ml: the fast fit holds the thresholds; it has no deviations of "
+                             "its own to give")
         son = np.empty(npx)
         soff = np.empty(npx)
         _threshold_sd_kernel(off, t, p, model.mode, model.dead, model.reset_sigma ** 2, tq2,
@@ -2727,6 +2965,7 @@ def estimate(
     neighbours: bool = True,
     threshold_sd: bool = False,
     dead_fraction: float | None = None,
+    fast: bool = False,
 ) -> MlResult:
     """Maximum-likelihood radiance per pixel and cycle.
 
@@ -2754,7 +2993,13 @@ def estimate(
         estimate from its silence (:data:`FLAG_FEW_EVENTS`) is weighed; default the
         sensor's (:attr:`MlModel.dead_fraction`); 0 where a calibration's map names the
         dead pixels.
+    fast : the fast fit (docs/ml.md): ``ln L`` alone, the thresholds held at ``priors``
+        (a calibration's), the full fit only where the fast one fails its checks; not with
+        ``g_prior_sigma`` or ``threshold_sd``.
     """
+    if fast and (g_prior_sigma is not None or threshold_sd):
+        raise ValueError("ml: the fast fit estimates ln L with the thresholds held; it takes "
+                         "no prior on ln L and gives no thresholds' deviations")
     if dead_fraction is not None and not 0.0 <= dead_fraction < 1.0:
         raise ValueError(f"ml: dead_fraction is the share of pixels that never fire, in "
                          f"[0, 1); got {dead_fraction}")
@@ -2780,7 +3025,7 @@ def estimate(
         g, s, c1, c2, fl, counts, *tsd = _run(
             model, off, t, p, npx, priors, g_prior, g_prior_sigma, False, min_events,
             start_sigma, progress=step, width=width, neighbours=neighbours,
-            threshold_sd=threshold_sd, dead_fraction=dead_fraction)
+            threshold_sd=threshold_sd, dead_fraction=dead_fraction, fast=fast)
         if sd_on is not None and sd_off is not None:
             sd_on[c] = tsd[0].reshape(height, width)
             sd_off[c] = tsd[1].reshape(height, width)
@@ -2904,6 +3149,7 @@ def reconstruct_ml(
     neighbours: bool = True,
     learn: bool = True,
     learner: LearnedThresholds | None = None,
+    fast: bool = False,
 ) -> np.ndarray:
     """``ml`` on a recording: float32 radiance ``(n_cycles, height, width)`` in the unit of
     ``L_const``, NaN where a pixel has no information.
@@ -2931,8 +3177,16 @@ def reconstruct_ml(
     teaches too); ``learner`` carries what was learned from one call
     to the next (a recording reconstructed cycle by cycle), else each call starts from
     the nominal thresholds.
+    ``fast``: the fast fit (:func:`estimate`; docs/ml.md): ``ln L`` alone with the
+    thresholds held, so it needs them calibrated (``thresholds`` or ``cmap``); about ten
+    times faster than the full fit.
     """
     from asynhdr.events import sort_events
+
+    if fast and thresholds is None and cmap is None:
+        raise ValueError("ml --fast holds each pixel's thresholds where they are: it needs "
+                         "them calibrated (a calibration file, --calib, or a c-map); "
+                         "without one, run the full fit (it estimates them too)")
 
     if l_const is not None and float(l_const) != float(rig.l_const):
         rig = dataclasses.replace(rig, l_const=float(l_const))
@@ -2958,7 +3212,7 @@ def reconstruct_ml(
     n_min = (1 if settled_start else 2) if min_events is None else int(min_events)
     kw: dict[str, Any] = dict(width=w, height=h, model=model, min_events=n_min,
                               start_sigma=start_sigma, neighbours=neighbours,
-                              dead_fraction=None if defects is None else 0.0)
+                              dead_fraction=None if defects is None else 0.0, fast=fast)
     if thresholds is None and cmap is None and learn and sensor.threshold_sigma > 0:
         own = learner is None
         learner = LearnedThresholds() if learner is None else learner

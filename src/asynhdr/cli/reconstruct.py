@@ -79,6 +79,9 @@ def reconstruct(
     calibration: Path | None = typer.Option(None, "--calibration", help="Calibration file "
                                             "(.npz, asynhdr.calib) with per-pixel ON and OFF "
                                             "thresholds, for ml."),
+    fast: bool = typer.Option(False, "--fast", help="ml's fast fit: ln L alone, each "
+                              "pixel's thresholds held at the calibration's (needs "
+                              "--calibration); about ten times faster (docs/ml.md)."),
 ) -> None:
     """Reconstruct one HDR image per modulation cycle.
 
@@ -122,6 +125,11 @@ def reconstruct(
              "paper's weightings take a c-map: --cmap)")
     if cmap is not None and method == "ml":
         fail("--cmap: ml takes per-pixel thresholds from --calibration, not a c-map")
+    if fast and method != "ml":
+        fail(f"--fast: the fast fit is ml's, not {method}'s")
+    if fast and calibration is None:
+        fail("--fast holds each pixel's thresholds at the calibration's: give "
+             "--calibration (without one, the full fit estimates them)")
     mlo = MlOutputs.open(rig, calibration, method=method, formats=fmts, fail=fail)
     if mlo.thresholds is not None and src.width is not None and \
             mlo.thresholds[0].shape != (src.height, src.width):
@@ -133,6 +141,9 @@ def reconstruct(
     opts = mlo.options
     if opts is not None and single:  # one ramp from rest: the pixels start on their reference
         opts["settled_start"] = True
+    if opts is not None and fast:
+        opts["fast"] = True
+        meta["ml_fit"] = "fast: ln L alone, the calibration's thresholds held"
     try:
         cm = load_cmap(cmap) if cmap is not None else None
         with contextlib.ExitStack() as stack, progress_bar() as update:
