@@ -1191,6 +1191,14 @@ def _workspace():
 
 
 @nb.njit(cache=True, inline="always", error_model="numpy")
+def _fit_space(g_lo, g_hi):
+    """:func:`_fit_pixel`'s own work arrays besides :func:`_workspace`'s: ``(res, saved,
+    work, scan)``."""
+    return (np.zeros(6), np.zeros(22), np.zeros(6),
+            np.zeros((int((g_hi - g_lo) / (2.0 * _SCAN_STEP)) + 2, 10)))
+
+
+@nb.njit(cache=True, inline="always", error_model="numpy")
 def _fit_flag(g, var, g_lo, g_hi):
     """The flag of a fit at ``g`` with variance ``var``: :data:`FLAG_OUT_OF_RANGE` at a bound
     of the range, :data:`FLAG_UNINFORMED` when ``var`` is not below
@@ -1917,10 +1925,7 @@ def _estimate_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
     for bi in nb.prange(nblk):
         blk = order[bi]
         h, bvec, x, lmat, wy, wz, stat, st_o = _workspace()
-        res = np.zeros(6)
-        saved = np.zeros(22)
-        work = np.zeros(6)
-        scan = np.zeros((int((g_hi - g_lo) / (2.0 * _SCAN_STEP)) + 2, 10))
+        res, saved, work, scan = _fit_space(g_lo, g_hi)
         for px in range(blk * _BLOCK, min(npx, (blk + 1) * _BLOCK)):
             lo = off[px]
             hi = off[px + 1]
@@ -2071,10 +2076,7 @@ def _fast_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, row
         blk = order[bi]
         h, bvec, x, lmat, wy, wz, stat, st_o = _workspace()
         acc = np.zeros(7)
-        res = np.zeros(6)
-        saved = np.zeros(22)
-        work = np.zeros(6)
-        scan = np.zeros((int((g_hi - g_lo) / (2.0 * _SCAN_STEP)) + 2, 10))
+        res, saved, work, scan = _fit_space(g_lo, g_hi)
         for px in range(blk * _BLOCK, min(npx, (blk + 1) * _BLOCK)):
             lo = off[px]
             hi = off[px + 1]
