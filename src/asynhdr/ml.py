@@ -3180,7 +3180,7 @@ def reconstruct_ml(
     to the next (a recording reconstructed cycle by cycle), else each call starts from
     the nominal thresholds.
     ``fast``: the fast fit (:func:`estimate`; docs/ml.md): ``ln L`` alone with the
-    thresholds held, so it needs them calibrated (``thresholds`` or ``cmap``); about ten
+    thresholds held, so it needs them calibrated (``thresholds`` or ``cmap``); about five
     times faster than the full fit.
     """
     from asynhdr.events import sort_events

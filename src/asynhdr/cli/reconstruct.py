@@ -81,7 +81,7 @@ def reconstruct(
                                             "thresholds, for ml."),
     fast: bool = typer.Option(False, "--fast", help="ml's fast fit: ln L alone, each "
                               "pixel's thresholds held at the calibration's (needs "
-                              "--calibration); about ten times faster (docs/ml.md)."),
+                              "--calibration); about five times faster (docs/ml.md)."),
 ) -> None:
     """Reconstruct one HDR image per modulation cycle.
 
