@@ -51,6 +51,7 @@ from asynhdr.simulate import simulate
 
 __all__ = [
     "DEFAULT_SCENE_METHODS",
+    "ML_FAST",
     "ML_UNCALIBRATED",
     "SceneEvaluation",
     "calibrate_for_scenes",
@@ -68,6 +69,10 @@ ML_UNCALIBRATED = "ml-uncalibrated"
 """A further method name for :func:`evaluate_scene`: ``ml`` as ``asynhdr reconstruct``
 runs it without a calibration (the nominal thresholds, learned from cycle to cycle; the
 pixels it takes for dead filled), beside ``ml`` with the scenes' calibration."""
+
+ML_FAST = "ml-fast"
+"""... and ``ml``'s fast fit with the scenes' calibration (``reconstruct --method ml
+--fast``): ``ln L`` alone, the calibrated thresholds held."""
 
 AUTO_EXPOSURE_FRACTION = 0.18
 """``frame-auto`` puts the scene's log-average at this fraction of the full well (the 18 %
@@ -169,7 +174,8 @@ def evaluate_scene(
     :func:`calibrate_for_scenes` for the same sensor (made here when not given).
     ``ml_calibration``: per-pixel thresholds and dead pixels for ``ml``
     (:func:`calibrate_thresholds_for_scenes`); without it ``ml`` uses the c-map.
-    ``methods`` may name :data:`ML_UNCALIBRATED` too."""
+    ``methods`` may name :data:`ML_UNCALIBRATED` and :data:`ML_FAST` (which needs
+    ``ml_calibration``) too."""
     rig = rig or Rig()
     sensor = get_preset(sensor) if isinstance(sensor, str) else sensor
     cam = get_frame_camera(frame_camera) if isinstance(frame_camera, str) else frame_camera
@@ -200,10 +206,16 @@ def evaluate_scene(
     images: dict[str, np.ndarray] = {}
     ml_out: dict[str, Any] = {}
     for i, m in enumerate(methods):
-        if m == "ml" and ml_calibration is not None:  # per-pixel thresholds, dead pixels
-            opts = {"thresholds": ml_calibration.threshold_maps(),
-                    "defects": ml_calibration.defects, "out": ml_out}
-            img = reconstruct(rec, method=m, ml_options=opts)[-1]
+        if m in ("ml", ML_FAST) and ml_calibration is not None:
+            # per-pixel thresholds, dead pixels
+            opts: dict[str, Any] = {"thresholds": ml_calibration.threshold_maps(),
+                                    "defects": ml_calibration.defects, "fast": m == ML_FAST}
+            if m == "ml":
+                opts["out"] = ml_out
+            img = reconstruct(rec, method="ml", ml_options=opts)[-1]
+        elif m == ML_FAST:
+            raise ValueError(f"{ML_FAST} holds the calibration's thresholds: it needs a "
+                             "calibration (a rig: --designed or --rig)")
         elif m == ML_UNCALIBRATED:
             img = reconstruct(rec, method="ml")[-1]
         else:

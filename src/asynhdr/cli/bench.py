@@ -97,8 +97,9 @@ def _run_scenes(files: list[Path], out: Path, *, width: int, height: int, preset
     more: dict[str, Any] = {"rig": rig}
     if methods:
         more["methods"] = methods
-    if rig is not None and "ml" in (methods or ("ml",)):
-        from asynhdr.evaluate import calibrate_thresholds_for_scenes
+    from asynhdr.evaluate import ML_FAST, calibrate_thresholds_for_scenes
+
+    if rig is not None and {"ml", ML_FAST} & set(methods or ("ml",)):
 
         more["ml_calibration"] = calibrate_thresholds_for_scenes(
             width=width, height=height, sensor=preset, rig=rig, sensor_seed=sensor_seed)
@@ -168,7 +169,8 @@ def evaluate(
     methods: str | None = typer.Option(None, help="Comma-separated event methods (default: "
                                        "raw,linear,exp,ttfe,invert,ml; also "
                                        "ml-uncalibrated: ml as 'asynhdr reconstruct' runs "
-                                       "it without a calibration)."),
+                                       "it without a calibration; ml-fast: its fast fit "
+                                       "with the calibration, needs --designed or --rig)."),
     scheduler: str | None = typer.Option(None, help="Evaluate the scenes on dask workers: "
                                          "'local' or a scheduler's address."),
     workers: int | None = typer.Option(None, help="With --scheduler local: worker "
@@ -198,13 +200,16 @@ def evaluate(
             rig = default_rig(preset)
         meths = tuple(m.strip() for m in methods.split(",") if m.strip()) if methods else None
         if meths:
-            from asynhdr.evaluate import ML_UNCALIBRATED
+            from asynhdr.evaluate import ML_FAST, ML_UNCALIBRATED
             from asynhdr.reconstruct import METHODS
 
-            known = (*METHODS, ML_UNCALIBRATED)
+            known = (*METHODS, ML_UNCALIBRATED, ML_FAST)
             bad = [m for m in meths if m not in known]
             if bad:
                 fail(f"--methods: unknown {', '.join(bad)}; known: {', '.join(known)}")
+            if ML_FAST in meths and rig is None:
+                fail(f"--methods {ML_FAST}: the fast fit holds the calibration's thresholds, "
+                     "and the scenes are calibrated for a rig: add --designed or --rig")
         with contextlib.ExitStack() as stack, progress_bar() as update:
             client = _client(stack, scheduler, workers)
             summaries, _ = _run_scenes(scenes, out, width=width, height=height, preset=preset,
