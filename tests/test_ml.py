@@ -923,3 +923,36 @@ def test_fast_fit_needs_calibrated_thresholds(tmp_path) -> None:
     assert r.exit_code != 0
     assert "--calibration" in r.output
     assert not (tmp_path / "img").exists()
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_grouping_by_pixel_keeps_each_pixels_time_order(threads: int) -> None:
+    """The counting sort against a stable argsort, on events out of time order, some
+    outside the window, on a sensor whose pixel count is no multiple of the buckets."""
+    import numba
+
+    gen = np.random.default_rng(5)
+    width, height, n = 346, 260, 200_000
+    ev = np.zeros(n, EVENT_DTYPE)
+    ev["x"] = gen.integers(0, width, n)
+    ev["y"] = gen.integers(0, height, n)
+    ev["p"] = gen.choice([-1, 1], n)
+    ev["t"] = gen.integers(0, 50_000, n)  # unsorted, with ties
+    start, window = 10_000, 30_000
+    previous = numba.get_num_threads()
+    numba.set_num_threads(threads)
+    try:
+        off, t, p = ml.group_by_pixel(ev, width=width, height=height, start_us=start,
+                                      window_us=window)
+    finally:
+        numba.set_num_threads(previous)
+    kept = ev[(ev["t"] >= start) & (ev["t"] < start + window)]
+    pix = kept["y"].astype(np.int64) * width + kept["x"]
+    order = np.argsort(pix, kind="stable")
+    assert t.dtype == np.int32
+    np.testing.assert_array_equal(t, kept["t"][order] - start)
+    np.testing.assert_array_equal(p, kept["p"][order])
+    np.testing.assert_array_equal(np.diff(off), np.bincount(pix, minlength=width * height))
+    assert off[0] == 0 and off[-1] == kept.size
+    with pytest.raises(ValueError, match="window"):
+        ml.group_by_pixel(ev, width=width, height=height, start_us=0, window_us=2**31)

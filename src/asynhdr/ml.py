@@ -520,30 +520,46 @@ def _at_g(mode, g, g0, dlog, nr):
 
 
 @nb.njit(cache=True, inline="always", error_model="numpy")
+def _slot(mode, m, end, exact, locate):
+    """What :func:`_eval_slot` needs of whole µs slot ``m >= 0`` (``end``: the dead time's
+    end), whatever ``g``: the transmitted waveforms and their slopes (mode 0), or the grid
+    interval, the weight within it and the time scale (mode 1). Read once per event where
+    one pass evaluates several ``g``."""
+    if mode == 0:
+        o = 4 if end else 0
+        return exact[m, o], exact[m, o + 1], exact[m, o + 2], exact[m, o + 3]
+    o = 2 if end else 0
+    return locate[m, o], locate[m, o + 1], locate[m, 4 + o // 2], 0.0
+
+
+@nb.njit(cache=True, inline="always", error_model="numpy")
+def _eval_slot(mode, j, w, e, s0, s1, s2, s3, rows, dlog):
+    """``(V, dV/dg, dV/dt)`` at the slot that :func:`_slot` read as ``(s0, .., s3)``, for
+    the ``g`` that :func:`_at_g` gave ``(j, w, e)``."""
+    if mode == 0:
+        irr = s0 * e + s1
+        return math.log(irr), s0 * e / irr, (s2 * e + s3) / irr
+    k = int(s0)
+    da = rows[k, j, 1]
+    db = rows[k, j + 1, 1]
+    va = rows[k, j, 0] + s1 * da
+    vb = rows[k, j + 1, 0] + s1 * db
+    return va + w * (vb - va), (vb - va) / dlog, (da + w * (db - da)) * s2
+
+
+@nb.njit(cache=True, inline="always", error_model="numpy")
 def _eval(mode, j, w, e, m, end, exact, v0a, v0b, rows, dlog, locate):
     """``(V, dV/dg, dV/dt)`` at whole µs slot ``m`` (``end``: the dead time's end; ``m < 0``:
     the cycle start) for the ``g`` that :func:`_at_g` gave ``(j, w, e)``."""
-    if mode == 0:
-        if m < 0:
+    if m < 0:
+        if mode == 0:
             irr = v0a * e + v0b
             return math.log(irr), v0a * e / irr, 0.0
-        o = 4 if end else 0
-        a = exact[m, o]
-        b = exact[m, o + 1]
-        irr = a * e + b
-        return math.log(irr), a * e / irr, (exact[m, o + 2] * e + exact[m, o + 3]) / irr
-    if m < 0:
         va = rows[0, j, 0]
         vb = rows[0, j + 1, 0]
         return va + w * (vb - va), (vb - va) / dlog, 0.0
-    o = 2 if end else 0
-    k = int(locate[m, o])
-    f = locate[m, o + 1]
-    da = rows[k, j, 1]
-    db = rows[k, j + 1, 1]
-    va = rows[k, j, 0] + f * da
-    vb = rows[k, j + 1, 0] + f * db
-    return va + w * (vb - va), (vb - va) / dlog, (da + w * (db - da)) * locate[m, 4 + o // 2]
+    s0, s1, s2, s3 = _slot(mode, m, end, exact, locate)
+    return _eval_slot(mode, j, w, e, s0, s1, s2, s3, rows, dlog)
 
 
 @nb.njit(cache=True, inline="always", error_model="numpy")
@@ -1966,15 +1982,14 @@ _FAST_OUTLIER_Z2 = 9.0
 
 @nb.njit(cache=True, error_model="numpy")
 def _fast_pass(mode, g, lo, hi, t, p, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
-               dlog, locate, wmax, c1, c2, mu_u, su2, robust, acc, nll):
+               dlog, locate, wmax, c1, c2, mu_u, su2, robust, acc):
     """One pass over a pixel's events at ``g`` with the thresholds held at ``c1``, ``c2``
     and the start offset at its prior's mean ``mu_u`` (variance ``su2``, added to the
     first equation's): the Newton sums of the one-parameter likelihood into ``acc``:
     ``(sum w r J - sum jac, sum w J^2, sum_on w J, -sum_off w J, max z^2, sum w r^2)``
     (the model of :func:`_normal`, its gradient's Jacobian term included; ``robust``: the
-    outlier weights at ``g``), and with ``nll`` the events' ``-2 sum ln(f_i + lambda)``
-    (:func:`_fit_nll`'s) in ``acc[6]``. Without a dead time the walk is taken from the
-    first event's level (``u`` drops out)."""
+    outlier weights at ``g``). Without a dead time the walk is taken from the first
+    event's level (``u`` drops out)."""
     jg, wg, eg = _at_g(mode, g, g0, dlog, rows.shape[1])
     vs, dgs, _ = _eval(mode, jg, wg, eg, -1, False, exact, v0a, v0b, rows, dlog, locate)
     a = 0.0
@@ -1983,7 +1998,6 @@ def _fast_pass(mode, g, lo, hi, t, p, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
     b_off = 0.0
     z_max = 0.0
     chi2 = 0.0
-    nl = 0.0
     prev = -1
     base = vs
     dbase = dgs
@@ -2026,10 +2040,6 @@ def _fast_pass(mode, g, lo, hi, t, p, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
             var = 1e-12
         w = 1.0 / var
         z2 = r * r * w
-        if nll:
-            f = math.exp(-0.5 * z2) * abs(dtc) * math.sqrt(w) * 0.3989422804014327
-            nl -= 2.0 * math.log(max(f + lam, _DENSITY_FLOOR))
-            continue
         if z2 > z_max:
             z_max = z2
         jac = 0.0
@@ -2054,7 +2064,66 @@ def _fast_pass(mode, g, lo, hi, t, p, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
     acc[3] = b_off
     acc[4] = z_max
     acc[5] = chi2
-    acc[6] = nl
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _fast_check(mode, gs, nk, lo, hi, t, p, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
+                g0, dlog, locate, wmax, c1, c2, mu_u, su2, ws, nl):
+    """The events' ``-2 sum ln(f_i + lambda)`` (:func:`_fit_nll`'s density) under
+    :func:`_fast_pass`'s model, at each of the ``nk`` points ``gs[:nk]``, into ``nl[:nk]``:
+    one pass, each event's slots read once for all points (``ws``: ``(nk, 6)`` work)."""
+    nr = rows.shape[1]
+    for k in range(nk):
+        j, w, e = _at_g(mode, gs[k], g0, dlog, nr)
+        vs, _, _ = _eval(mode, j, w, e, -1, False, exact, v0a, v0b, rows, dlog, locate)
+        ws[k, 0] = j
+        ws[k, 1] = w
+        ws[k, 2] = e
+        ws[k, 3] = vs
+        nl[k] = 0.0
+    prev = -1
+    level = 0.0
+    k_ev = 0
+    b0 = b1 = b2 = b3 = 0.0
+    for i in range(lo, hi):
+        m = t[i]
+        if m >= wmax:
+            m = wmax - 1
+        a0, a1, a2, a3 = _slot(mode, m, False, exact, locate)
+        step = c1 if p[i] > 0 else -c2
+        first = prev < 0
+        if dead and not first:
+            b0, b1, b2, b3 = _slot(mode, prev, True, exact, locate)
+        elif not dead and not first:
+            k_ev += 1
+            level += step
+        prev = m
+        for k in range(nk):
+            j = int(ws[k, 0])
+            w = ws[k, 1]
+            e = ws[k, 2]
+            vc, _, dtc = _eval_slot(mode, j, w, e, a0, a1, a2, a3, rows, dlog)
+            if dead:
+                if first:
+                    ref = ws[k, 3] + mu_u
+                    var = sr2 + dtc * dtc * tq2 + su2
+                else:
+                    ref, _, dte = _eval_slot(mode, j, w, e, b0, b1, b2, b3, rows, dlog)
+                    var = sr2 + dtc * dtc * tq2 + dte * dte * eq2
+            else:
+                if first:
+                    # the walk from the first event's level, as in _fast_pass
+                    ws[k, 4] = vc
+                    ws[k, 5] = dtc * dtc * tq2
+                    continue
+                ref = ws[k, 4] + level - step
+                var = sr2 * k_ev + dtc * dtc * tq2 + ws[k, 5]
+            r = vc - ref - step
+            if var < 1e-12:
+                var = 1e-12
+            iw = 1.0 / var
+            f = math.exp(-0.5 * r * r * iw) * abs(dtc) * math.sqrt(iw) * 0.3989422804014327
+            nl[k] -= 2.0 * math.log(max(f + lam, _DENSITY_FLOOR))
 
 
 @nb.njit(cache=True, parallel=True, error_model="numpy")
@@ -2075,7 +2144,10 @@ def _fast_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, row
     for bi in nb.prange(nblk):
         blk = order[bi]
         h, bvec, x, lmat, wy, wz, stat, st_o = _workspace()
-        acc = np.zeros(7)
+        acc = np.zeros(6)
+        gs = np.empty(len(_FAST_PROBES) + 1)
+        nl = np.empty(len(_FAST_PROBES) + 1)
+        ws = np.empty((len(_FAST_PROBES) + 1, 6))
         res, saved, work, scan = _fit_space(g_lo, g_hi)
         for px in range(blk * _BLOCK, min(npx, (blk + 1) * _BLOCK)):
             lo = off[px]
@@ -2103,8 +2175,7 @@ def _fast_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, row
             last = 0.0
             for _ in range(_FAST_ITER):
                 _fast_pass(mode, g, lo, hi, t, p, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
-                           rows, g0, dlog, locate, wmax, c1, c2, mu_u, su * su, robust, acc,
-                           False)
+                           rows, g0, dlog, locate, wmax, c1, c2, mu_u, su * su, robust, acc)
                 if not acc[1] > 0.0:
                     break
                 dg = min(max(-acc[0] / acc[1], -_MAX_STEP_G), _MAX_STEP_G)
@@ -2130,18 +2201,17 @@ def _fast_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, row
             if not poor:
                 # the likelihood's profile (thresholds held) at a few points about the fit:
                 # a likelier one means another optimum, which the full fit weighs
-                _fast_pass(mode, g, lo, hi, t, p, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
-                           rows, g0, dlog, locate, wmax, c1, c2, mu_u, su * su, False, acc,
-                           True)
-                o_fit = acc[6]
+                gs[0] = g
+                nk = 1
                 for d in _FAST_PROBES:
                     gq = min(max(g + d, g_lo), g_hi)
-                    if gq == g:
-                        continue
-                    _fast_pass(mode, gq, lo, hi, t, p, dead, sr2, tq2, eq2, lam, exact, v0a,
-                               v0b, rows, g0, dlog, locate, wmax, c1, c2, mu_u, su * su,
-                               False, acc, True)
-                    if acc[6] < o_fit - _PROBE_MARGIN:
+                    if gq != g:
+                        gs[nk] = gq
+                        nk += 1
+                _fast_check(mode, gs, nk, lo, hi, t, p, dead, sr2, tq2, eq2, lam, exact, v0a,
+                            v0b, rows, g0, dlog, locate, wmax, c1, c2, mu_u, su * su, ws, nl)
+                for k in range(1, nk):
+                    if nl[k] < nl[0] - _PROBE_MARGIN:
                         poor = True
                         break
             if poor:
@@ -2559,45 +2629,89 @@ def _sparse_kernel(todo, off, t, p, mode, exact, v0a, v0b, rows, g0, dlog, locat
 # ----------------------------------------------------------------------------- grouping
 
 
-@nb.njit(cache=True, error_model="numpy")
-def _group_kernel(x, y, p, t, t0, t1, width, npx, off, out_t, out_p):
-    """Counting sort of the events with ``t0 <= t < t1`` by pixel (stable: time order
-    kept). ``off`` gets the per-pixel offsets; returns the number kept."""
-    cnt = np.zeros(npx + 1, np.int64)
-    n = 0
-    for i in range(t.shape[0]):
-        if t[i] >= t0 and t[i] < t1:
-            cnt[np.int64(y[i]) * width + x[i] + 1] += 1
-            n += 1
-    for j in range(npx):
-        cnt[j + 1] += cnt[j]
-    for j in range(npx + 1):
-        off[j] = cnt[j]
-    for i in range(t.shape[0]):
-        ti = t[i]
-        if ti >= t0 and ti < t1:
-            j = np.int64(y[i]) * width + x[i]
-            d = cnt[j]
-            out_t[d] = ti - t0
-            out_p[d] = p[i]
-            cnt[j] = d + 1
-    return n
+_GROUP_SHIFT = 13
+"""The grouping's first pass sorts the events into buckets of ``2**13`` consecutive pixels
+(a few MB of events each, sorted by pixel in cache by the second pass)."""
+
+
+@nb.njit(cache=True, parallel=True, error_model="numpy")
+def _group_kernel(x, y, p, t, t0, t1, width, npx, nthr):
+    """Stable counting sort by pixel of the events with ``t0 <= t < t1``: ``(offsets, t -
+    t0 (int32), p)``. Two passes, each on ``nthr`` threads: the first into buckets of
+    :data:`_GROUP_SHIFT` pixels (each thread its slice of the stream, its own cursors:
+    the slices' order, and so the time order, kept), the second by pixel within each
+    bucket, whose events and counts fit in cache."""
+    n = t.shape[0]
+    nbk = (npx >> _GROUP_SHIFT) + 1
+    bounds = np.empty(nthr + 1, np.int64)
+    for c in range(nthr + 1):
+        bounds[c] = n * c // nthr
+    bc = np.zeros((nthr, nbk), np.int64)
+    for c in nb.prange(nthr):
+        for i in range(bounds[c], bounds[c + 1]):
+            if t[i] >= t0 and t[i] < t1:
+                bc[c, (np.int64(y[i]) * width + x[i]) >> _GROUP_SHIFT] += 1
+    start = np.empty(nbk + 1, np.int64)
+    cur = np.empty((nthr, nbk), np.int64)
+    total = 0
+    for k in range(nbk):
+        start[k] = total
+        for c in range(nthr):
+            cur[c, k] = total
+            total += bc[c, k]
+    start[nbk] = total
+    b_px = np.empty(total, np.int32)
+    b_t = np.empty(total, np.int32)
+    b_p = np.empty(total, np.int8)
+    for c in nb.prange(nthr):
+        cc = cur[c]
+        for i in range(bounds[c], bounds[c + 1]):
+            ti = t[i]
+            if ti >= t0 and ti < t1:
+                j = np.int64(y[i]) * width + x[i]
+                k = j >> _GROUP_SHIFT
+                d = cc[k]
+                b_px[d] = j
+                b_t[d] = ti - t0
+                b_p[d] = p[i]
+                cc[k] = d + 1
+    off = np.empty(npx + 1, np.int64)
+    out_t = np.empty(total, np.int32)
+    out_p = np.empty(total, np.int8)
+    for k in nb.prange(nbk):
+        p0 = k << _GROUP_SHIFT
+        p1 = min(npx, (k + 1) << _GROUP_SHIFT)
+        if p1 <= p0:
+            continue
+        cnt = np.zeros(p1 - p0 + 1, np.int64)
+        for d in range(start[k], start[k + 1]):
+            cnt[b_px[d] - p0 + 1] += 1
+        cnt[0] = start[k]
+        for j in range(p1 - p0):
+            cnt[j + 1] += cnt[j]
+        for j in range(p1 - p0):
+            off[p0 + j] = cnt[j]
+        for d in range(start[k], start[k + 1]):
+            j = b_px[d] - p0
+            e = cnt[j]
+            out_t[e] = b_t[d]
+            out_p[e] = b_p[d]
+            cnt[j] = e + 1
+    off[npx] = total
+    return off, out_t, out_p
 
 
 def group_by_pixel(events: np.ndarray, *, width: int, height: int, start_us: int,
                    window_us: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The events of ``[start_us, start_us + window_us)`` grouped by pixel (time order kept
-    within a pixel): ``(offsets (n_pixels + 1,), t (µs from start_us, int64), p (int8))``."""
-    npx = width * height
-    off = np.empty(npx + 1, np.int64)
-    t = events["t"]
-    sel = int(np.count_nonzero((t >= start_us) & (t < start_us + window_us))) if t.size else 0
-    out_t = np.empty(sel, np.int64)
-    out_p = np.empty(sel, np.int8)
-    _group_kernel(events["x"], events["y"], events["p"], t, np.int64(start_us),
-                  np.int64(start_us + window_us), np.int64(width), np.int64(npx), off, out_t,
-                  out_p)
-    return off, out_t, out_p
+    within a pixel): ``(offsets (n_pixels + 1,) int64, t (µs from start_us, int32),
+    p (int8))``."""
+    if not 0 < window_us < 2**31:
+        raise ValueError(f"ml: a cycle's window is 1 µs to 2**31 µs (35 min); got "
+                         f"{window_us} µs")
+    return _group_kernel(events["x"], events["y"], events["p"], events["t"],
+                         np.int64(start_us), np.int64(start_us + window_us), np.int64(width),
+                         np.int64(width * height), np.int64(nb.get_num_threads()))
 
 
 # ----------------------------------------------------------------------------- public
