@@ -901,28 +901,72 @@ def test_fast_fit_recovers_radiance_within_stated_uncertainty(preset: str) -> No
     np.testing.assert_allclose(np.mean(res.radiance[-1], axis=1), levels, rtol=0.02)
 
 
-def test_fast_fit_needs_calibrated_thresholds(tmp_path) -> None:
+def test_fast_fit_needs_thresholds_calibrated_or_learned(tmp_path) -> None:
     from typer.testing import CliRunner
 
     from asynhdr.cli import _register, app
 
-    rig = default_rig("ideal")
-    rec = simulate(np.full((2, 3), 50.0), rig=rig, sensor=get_preset("ideal"), n_cycles=1,
-                   rng=0)
+    rig = default_rig("imx636")
+    rec = simulate(np.full((2, 3), 50.0), rig=rig, sensor=IMX636, n_cycles=1, rng=0)
     with pytest.raises(ValueError, match="calibrated"):
         ml.reconstruct_ml(rec, CycleWindows(rig.cycle_starts_us(1), rig.ramp_us), rig=rig,
-                          fast=True)
+                          fast=True, learn=False)
+    # the command line: without --calibration, the thresholds are learned, then held
     _register()
     r = CliRunner().invoke(app, ["simulate", "flat:300", "-o", str(tmp_path / "f.raw"),
-                                 "--width", "4", "--height", "2", "--preset", "ideal",
-                                 "--n-cycles", "1", "--rig-out", str(tmp_path / "rig.toml")])
+                                 "--width", "4", "--height", "2", "--preset", "imx636",
+                                 "--n-cycles", "2", "--rig-out", str(tmp_path / "rig.toml")])
     assert r.exit_code == 0, r.output
     r = CliRunner().invoke(app, ["reconstruct", str(tmp_path / "f.raw"), "-o",
                                  str(tmp_path / "img"), "--method", "ml", "--rig",
-                                 str(tmp_path / "rig.toml"), "--fast"])
-    assert r.exit_code != 0
-    assert "--calibration" in r.output
-    assert not (tmp_path / "img").exists()
+                                 str(tmp_path / "rig.toml"), "--fast", "--formats", "exr"])
+    assert r.exit_code == 0, r.output
+    assert "--fast fitted in full the pixels whose thresholds were not yet learned" in \
+        " ".join(r.output.split())
+    from asynhdr.io.images import read_metadata
+
+    meta = read_metadata(sorted((tmp_path / "img").glob("*[0-9].exr"))[-1])
+    assert "learned" in str(meta.get("ml_fit"))
+
+
+def test_fast_fit_holds_thresholds_once_learned() -> None:
+    # without a calibration the fast fit is the full fit until a pixel's thresholds are
+    # learned to FAST_HOLD_SD; then it holds them, and the radiance stays within the
+    # stated uncertainty
+    rig = default_rig("imx636")
+    sensor = IMX636.with_(name="imx636q", **QUIET)
+    levels = np.geomspace(30.0, 3.0e4, 7)
+    w = 40
+    n = 4
+    rec = simulate(_scene(levels, w), rig=rig, sensor=sensor, n_cycles=n, rng=3,
+                   sensor_seed=1)
+    starts = rig.cycle_starts_us(n)
+    learners = {True: ml.LearnedThresholds(), False: ml.LearnedThresholds()}
+    out: dict[bool, list[dict]] = {True: [], False: []}
+    held = np.zeros(0)
+    for c in range(n):
+        for fast in (True, False):
+            prior = learners[fast].priors(sensor, width=w, height=levels.size)
+            fl: dict = {}
+            fl["radiance"] = ml.reconstruct_ml(
+                rec, CycleWindows(starts[c:c + 1], rig.ramp_us), rig=rig, sensor=sensor,
+                learner=learners[fast], fast=fast, out=fl)
+            out[fast].append(fl)
+            if fast and c == n - 1:
+                learned = (prior[2] <= ml.FAST_HOLD_SD) & (prior[3] <= ml.FAST_HOLD_SD)
+                held = learned & (fl["c_on"][0].ravel() == prior[0].astype(np.float32))
+    # the first cycle: nothing learned, every pixel fitted in full, as by the full fit
+    for key in ("c_on", "sigma_log"):
+        np.testing.assert_array_equal(out[True][0][key], out[False][0][key])
+    # the last: most pixels hold what they learned
+    assert held.mean() >= 0.5
+    fl = out[True][-1]
+    assert np.all(fl["flags"][0] == 0)
+    z = (np.log(fl["radiance"][0]) - np.log(_scene(levels, w))) / fl["sigma_log"][0]
+    assert np.mean(np.abs(z) < 3.0) >= 0.95
+    assert 0.6 < float(np.std(z)) < 1.5
+    assert abs(float(np.median(z))) < 0.3
+    np.testing.assert_allclose(np.mean(fl["radiance"][0], axis=1), levels, rtol=0.02)
 
 
 @pytest.mark.parametrize("threads", [1, 2])

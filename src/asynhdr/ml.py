@@ -82,6 +82,7 @@ from asynhdr.sensor.photoreceptor import Lowpass, lowpass_rows, time_grid
 
 __all__ = [
     "DEFAULT_DLOG",
+    "FAST_HOLD_SD",
     "FLAG_FEW_EVENTS",
     "FLAG_FILLED",
     "FLAG_NO_EVENTS",
@@ -2130,9 +2131,10 @@ def _fast_check(mode, gs, nk, lo, hi, t, p, dead, sr2, tq2, eq2, lam, exact, v0a
 def _fast_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0, dlog,
                  locate, wmax, g_lo, g_hi, net_g, net_v, min_events, con0, coff0, scon,
                  scoff, out_g, out_sd, out_con, out_coff, out_flag, u_sd, split, net_v2,
-                 split2, order, out_u, out_full):
+                 split2, order, out_u, out_full, hold_sd):
     """Every pixel's fast fit (docs/ml.md, "The fast fit"): ``g`` alone, the thresholds
-    held at their priors (a calibration's), by Newton's method on the likelihood from
+    held at their priors (a calibration's, or learned ones whose spreads are at most
+    ``hold_sd``: the others are fitted in full), by Newton's method on the likelihood from
     the net change's start (:func:`_fast_pass`; the outlier weights once an event lies
     three deviations off). A fit that does not converge, reaches a bound or is vague,
     whose chi-square lies beyond its spread, or whose likelihood is lower than at one of
@@ -2173,7 +2175,9 @@ def _fast_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, row
             robust = False
             converged = False
             last = 0.0
-            for _ in range(_FAST_ITER):
+            held = s1 <= hold_sd and s2 <= hold_sd
+            acc[:] = 0.0
+            for _ in range(_FAST_ITER if held else 0):
                 _fast_pass(mode, g, lo, hi, t, p, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
                            rows, g0, dlog, locate, wmax, c1, c2, mu_u, su * su, robust, acc)
                 if not acc[1] > 0.0:
@@ -2795,6 +2799,11 @@ LEARN_SD_FLOOR = 0.005
 calibration file's thresholds get by default, :func:`thresholds_prior`): the posterior's
 Gaussian approximation is not trusted below it."""
 
+FAST_HOLD_SD = 0.01
+"""The fast fit (``reconstruct_ml(..., fast=True)``) holds a learned threshold once its
+spread is at most this (:class:`LearnedThresholds`); until then the pixel is fitted in
+full, and learns."""
+
 LEARN_MIN_EVENTS = 10
 """A cycle teaches :class:`LearnedThresholds` a pixel's thresholds only where the pixel
 fired at least this many events in it: with as few events as parameters (``ln L``, the
@@ -2946,7 +2955,8 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
          min_events: int = 2, start_sigma: float = 0.0,
          progress: Callable[[int], None] | None = None,
          width: int = 0, neighbours: bool = True, threshold_sd: bool = False,
-         dead_fraction: float | None = None, fast: bool = False) -> tuple[np.ndarray, ...]:
+         dead_fraction: float | None = None, fast: bool = False,
+         hold_sd: float = math.inf) -> tuple[np.ndarray, ...]:
     """Every pixel's fit (:func:`_estimate_kernel`); ``progress(pixels_done)`` after each
     of :data:`_PROGRESS_PARTS` parts when given (the same fits, part by part). With
     ``width`` (the pixels an image of that width) and ``neighbours``, the neighbours' fits
@@ -2957,8 +2967,10 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
     model's).
     Returns ``(g, sd, c_on, c_off, flag, counts)``, and with ``threshold_sd`` the
     thresholds' posterior standard deviations (:func:`_threshold_sd_kernel`) after them.
-    ``fast``: the fast fit (:func:`_fast_kernel`; no neighbours' starts, no thresholds'
-    deviations)."""
+    ``fast``: the fast fit (:func:`_fast_kernel`; the neighbours' starts for the pixels
+    fitted in full only), holding the
+    thresholds whose spreads are at most ``hold_sd``; the thresholds' deviations then come
+    from the pixels fitted in full alone (NaN where they were held)."""
     con, coff, scon, scoff = (np.ascontiguousarray(a) for a in priors)
     counts = np.diff(off)
     out_g = np.empty(npx)
@@ -2985,7 +2997,7 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
                          scoff[a:b], out_g[a:b], out_sd[a:b], out_con[a:b], out_coff[a:b],
                          out_flag[a:b], float(start_sigma), np.int64(model.split_us),
                          model.net_v2, np.int64(model.split2_us), block_order(b - a, _BLOCK),
-                         out_u[a:b], full[a:b])
+                         out_u[a:b], full[a:b], float(hold_sd))
             if progress is not None:
                 progress(b)
             continue
@@ -3004,8 +3016,9 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
     if fast:
         logger.debug("ml: %d of %d pixels fitted in full", int(full.sum()), npx)
     image = width > 0 and npx % width == 0
-    if neighbours and image and not fixed and not fast and not np.any(sp > 0.0):
-        todo = np.ones(npx, np.uint8)
+    if neighbours and image and not fixed and not np.any(sp > 0.0):
+        # the fast fit's pixels fitted in full try their neighbours' fits too
+        todo = full.copy() if fast else np.ones(npx, np.uint8)
         for _ in range(_NEIGHBOUR_SWEEPS):
             moved = np.zeros(npx, np.uint8)
             n_moved = _neighbour_starts(
@@ -3049,9 +3062,6 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
                 break
             few = left[counts[left] == 0]
     if threshold_sd:
-        if fast:
-            raise ValueError("ml: the fast fit holds the thresholds; it has no deviations of "
-                             "its own to give")
         son = np.empty(npx)
         soff = np.empty(npx)
         _threshold_sd_kernel(off, t, p, model.mode, model.dead, model.reset_sigma ** 2, tq2,
@@ -3059,6 +3069,7 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
                              model.v0[1], model.rows, model.g0, model.dlog, model.locate,
                              np.int64(model.window_us), con, coff, scon, scoff,
                              float(start_sigma), out_g, out_sd, out_u, out_con, out_coff,
+                             np.where(full == 1, out_flag, np.uint8(255)) if fast else
                              out_flag, son, soff)
         return out_g, out_sd, out_con, out_coff, out_flag, counts, son, soff
     return out_g, out_sd, out_con, out_coff, out_flag, counts
@@ -3082,6 +3093,7 @@ def estimate(
     threshold_sd: bool = False,
     dead_fraction: float | None = None,
     fast: bool = False,
+    hold_sd: float = math.inf,
 ) -> MlResult:
     """Maximum-likelihood radiance per pixel and cycle.
 
@@ -3110,12 +3122,14 @@ def estimate(
         sensor's (:attr:`MlModel.dead_fraction`); 0 where a calibration's map names the
         dead pixels.
     fast : the fast fit (docs/ml.md): ``ln L`` alone, the thresholds held at ``priors``
-        (a calibration's), the full fit only where the fast one fails its checks; not with
-        ``g_prior_sigma`` or ``threshold_sd``.
+        (a calibration's) wherever their spreads are at most ``hold_sd`` (default: all);
+        the full fit for the other pixels and where the fast one fails its checks. Not
+        with ``g_prior_sigma``; with ``threshold_sd``, the deviations of the thresholds
+        fitted in full (NaN where held).
     """
-    if fast and (g_prior_sigma is not None or threshold_sd):
+    if fast and g_prior_sigma is not None:
         raise ValueError("ml: the fast fit estimates ln L with the thresholds held; it takes "
-                         "no prior on ln L and gives no thresholds' deviations")
+                         "no prior on ln L")
     if dead_fraction is not None and not 0.0 <= dead_fraction < 1.0:
         raise ValueError(f"ml: dead_fraction is the share of pixels that never fire, in "
                          f"[0, 1); got {dead_fraction}")
@@ -3141,7 +3155,8 @@ def estimate(
         g, s, c1, c2, fl, counts, *tsd = _run(
             model, off, t, p, npx, priors, g_prior, g_prior_sigma, False, min_events,
             start_sigma, progress=step, width=width, neighbours=neighbours,
-            threshold_sd=threshold_sd, dead_fraction=dead_fraction, fast=fast)
+            threshold_sd=threshold_sd, dead_fraction=dead_fraction, fast=fast,
+            hold_sd=hold_sd)
         if sd_on is not None and sd_off is not None:
             sd_on[c] = tsd[0].reshape(height, width)
             sd_off[c] = tsd[1].reshape(height, width)
@@ -3299,14 +3314,16 @@ def reconstruct_ml(
     """
     from asynhdr.events import sort_events
 
-    if fast and thresholds is None and cmap is None:
-        raise ValueError("ml --fast holds each pixel's thresholds where they are: it needs "
-                         "them calibrated (a calibration file, --calib, or a c-map); "
-                         "without one, run the full fit (it estimates them too)")
-
     if l_const is not None and float(l_const) != float(rig.l_const):
         rig = dataclasses.replace(rig, l_const=float(l_const))
     sensor = sensor or sensor_of(rec.metadata, threshold=threshold)
+    calibrated = thresholds is not None or cmap is not None
+    learning = not calibrated and learn and sensor.threshold_sigma > 0
+    if fast and not calibrated and not learning and sensor.threshold_sigma > 0:
+        raise ValueError("ml --fast holds each pixel's thresholds where they are: it needs "
+                         "them calibrated (a calibration file, --calibration, or a c-map) "
+                         "or learned from the recording's cycles; without either, run the "
+                         "full fit (it estimates them too)")
     model = cached_model(rig, sensor, window_us=float(windows.window_us),
                          from_rest=settled_start)
     w, h = rec.width, rec.height
@@ -3329,7 +3346,7 @@ def reconstruct_ml(
     kw: dict[str, Any] = dict(width=w, height=h, model=model, min_events=n_min,
                               start_sigma=start_sigma, neighbours=neighbours,
                               dead_fraction=None if defects is None else 0.0, fast=fast)
-    if thresholds is None and cmap is None and learn and sensor.threshold_sigma > 0:
+    if learning:
         own = learner is None
         learner = LearnedThresholds() if learner is None else learner
         parts = []
@@ -3343,7 +3360,7 @@ def reconstruct_ml(
                     progress(stage, c * npx + done, len(starts) * npx)
             part = estimate(ev, starts_us=np.array([st]),
                             priors=learner.priors(sensor, width=w, height=h),
-                            threshold_sd=not last,
+                            threshold_sd=not last, hold_sd=FAST_HOLD_SD,
                             pixel_progress=step, **kw)
             if part.sd_on is not None:
                 learner.update(part)

@@ -80,8 +80,9 @@ def reconstruct(
                                             "(.npz, asynhdr.calib) with per-pixel ON and OFF "
                                             "thresholds, for ml."),
     fast: bool = typer.Option(False, "--fast", help="ml's fast fit: ln L alone, each "
-                              "pixel's thresholds held at the calibration's (needs "
-                              "--calibration); about five times faster (docs/ml.md)."),
+                              "pixel's thresholds held at the calibration's, or (without "
+                              "--calibration) once learned from the cycles before; about "
+                              "five times faster (docs/ml.md)."),
 ) -> None:
     """Reconstruct one HDR image per modulation cycle.
 
@@ -127,9 +128,6 @@ def reconstruct(
         fail("--cmap: ml takes per-pixel thresholds from --calibration, not a c-map")
     if fast and method != "ml":
         fail(f"--fast: the fast fit is ml's, not {method}'s")
-    if fast and calibration is None:
-        fail("--fast holds each pixel's thresholds at the calibration's: give "
-             "--calibration (without one, the full fit estimates them)")
     mlo = MlOutputs.open(rig, calibration, method=method, formats=fmts, fail=fail)
     if mlo.thresholds is not None and src.width is not None and \
             mlo.thresholds[0].shape != (src.height, src.width):
@@ -142,8 +140,13 @@ def reconstruct(
     if opts is not None and single:  # one ramp from rest: the pixels start on their reference
         opts["settled_start"] = True
     if opts is not None and fast:
+        from asynhdr.ml import FAST_HOLD_SD
+
         opts["fast"] = True
-        meta["ml_fit"] = "fast: ln L alone, the calibration's thresholds held"
+        meta["ml_fit"] = ("fast: ln L alone, the calibration's thresholds held"
+                          if calibration is not None else
+                          "fast: ln L alone, the thresholds held once learned from the "
+                          f"cycles before (to {FAST_HOLD_SD:g}); the rest fitted in full")
     try:
         cm = load_cmap(cmap) if cmap is not None else None
         with contextlib.ExitStack() as stack, progress_bar() as update:
@@ -226,7 +229,9 @@ def reconstruct(
                           f"{sensor.threshold_sigma:g}) and learned from cycle to cycle "
                           "(later cycles are the better for it); thresholds calibrated from "
                           "flat fields (asynhdr calibrate-thresholds) widen the range "
-                          "(docs/ml.md)")
+                          "(docs/ml.md)"
+                          + ("; --fast fitted in full the pixels whose thresholds were not "
+                             "yet learned (all of them in the first cycle)" if fast else ""))
 
 
 @app.command()
