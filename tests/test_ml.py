@@ -921,8 +921,9 @@ def test_fast_fit_needs_thresholds_calibrated_or_learned(tmp_path) -> None:
                                  str(tmp_path / "img"), "--method", "ml", "--rig",
                                  str(tmp_path / "rig.toml"), "--fast", "--formats", "exr"])
     assert r.exit_code == 0, r.output
-    assert "--fast fitted in full the pixels whose thresholds were not yet learned" in \
-        " ".join(r.output.split())
+    said = " ".join(r.output.split())
+    assert "--fast fitted in full the pixels whose thresholds were not yet learned" in said
+    assert "in full (thresholds not yet learned, or a failed check" in said
     from asynhdr.io.images import read_metadata
 
     meta = read_metadata(sorted((tmp_path / "img").glob("*[0-9].exr"))[-1])
@@ -958,8 +959,11 @@ def test_fast_fit_holds_thresholds_once_learned() -> None:
     # the first cycle: nothing learned, every pixel fitted in full, as by the full fit
     for key in ("c_on", "sigma_log"):
         np.testing.assert_array_equal(out[True][0][key], out[False][0][key])
+    assert out[True][0]["full_fits"][0] == w * levels.size
+    assert "full_fits" not in out[False][0]
     # the last: most pixels hold what they learned
     assert held.mean() >= 0.5
+    assert out[True][-1]["full_fits"][0] == np.count_nonzero(~held)
     fl = out[True][-1]
     assert np.all(fl["flags"][0] == 0)
     z = (np.log(fl["radiance"][0]) - np.log(_scene(levels, w))) / fl["sigma_log"][0]
@@ -1000,3 +1004,15 @@ def test_grouping_by_pixel_keeps_each_pixels_time_order(threads: int) -> None:
     assert off[0] == 0 and off[-1] == kept.size
     with pytest.raises(ValueError, match="window"):
         ml.group_by_pixel(ev, width=width, height=height, start_us=0, window_us=2**31)
+
+
+def test_a_vague_fit_whose_plateau_leaves_the_range_holds_the_bound() -> None:
+    # ln L range (0, 10); vague fits (deviation >= 1) within one deviation of a bound
+    # become fits at that bound; the others, and fits without curvature, stay vague
+    g = np.array([9.5, 0.4, 5.0, 9.5, 5.0, 8.0, 9.5])
+    sd = np.array([1.2, 1.1, 1.5, np.inf, 6.0, 1.5, 0.3])
+    flags = np.array([ml.FLAG_UNINFORMED] * 6 + [0], np.uint8)
+    ml._beyond_range(g, sd, flags, 0.0, 10.0)
+    np.testing.assert_array_equal(g, [10.0, 0.0, 5.0, 9.5, 5.0, 8.0, 9.5])
+    u, o = ml.FLAG_UNINFORMED, ml.FLAG_OUT_OF_RANGE
+    np.testing.assert_array_equal(flags, [o, o, u, u, u, u, 0])

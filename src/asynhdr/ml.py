@@ -53,7 +53,8 @@ under the likelihood of so few events (:data:`FLAG_FEW_EVENTS`): silence is like
 where the signal swings least, near ``L_const``, and a dead pixel explains it too, at the
 sensor's share of them (then NaN, flag :data:`FLAG_NO_EVENTS`). Pixels whose estimate is
 uncertain to a factor e or more carry no information (NaN, :data:`FLAG_UNINFORMED`). Pixels
-whose estimate reaches a bound of the model's radiance range are flagged
+whose estimate reaches a bound of the model's radiance range (or whose vague estimate lies
+within one deviation of it) are flagged
 :data:`FLAG_OUT_OF_RANGE` and hold the bound (brighter than the range: its top, as a
 camera's saturated pixel; darker: its bottom); their standard deviation is NaN. The mask
 (:attr:`MlResult.mask`) is False for all three. With a calibration's map of dead pixels
@@ -132,7 +133,8 @@ bound, as a saturated pixel of a camera holds its full scale; no standard deviat
 FLAG_UNINFORMED = 4
 """Flag: the estimate's standard deviation of ``ln L`` is 1 or more (the events fix ``L``
 to no better than a factor e: a plateau of the likelihood): NaN, the deviation kept (NaN
-where it is infinite: a profile without curvature)."""
+where it is infinite: a profile without curvature). A vague fit within one deviation of
+a bound of the range is flagged :data:`FLAG_OUT_OF_RANGE` instead and holds the bound."""
 FLAG_FILLED = 8
 """Flag (with :data:`FLAG_NO_EVENTS`): a dead pixel of the calibration's map, given the
 median of its measured neighbours (:func:`asynhdr.defects.fill_defects`); no deviation."""
@@ -530,7 +532,9 @@ def _slot(mode, m, end, exact, locate):
         o = 4 if end else 0
         return exact[m, o], exact[m, o + 1], exact[m, o + 2], exact[m, o + 3]
     o = 2 if end else 0
-    return locate[m, o], locate[m, o + 1], locate[m, 4 + o // 2], 0.0
+    # as float64 (the slot index is float32): a tuple unified with mode 0's
+    return (np.float64(locate[m, o]), np.float64(locate[m, o + 1]),
+            np.float64(locate[m, 4 + o // 2]), 0.0)
 
 
 @nb.njit(cache=True, inline="always", error_model="numpy")
@@ -2737,6 +2741,8 @@ class MlResult:
     n_events : int32 events used per pixel.
     sd_on, sd_off : float32 the thresholds' posterior standard deviations (NaN where the
         pixel has no fit), when :func:`estimate` was asked for them; else None.
+    full_fits : int64 ``(n_cycles,)``, with the fast fit: the pixels of each cycle fitted
+        in full (thresholds not yet learned, or a failed check); else None.
     """
 
     radiance: np.ndarray
@@ -2747,6 +2753,7 @@ class MlResult:
     n_events: np.ndarray
     sd_on: np.ndarray | None = None
     sd_off: np.ndarray | None = None
+    full_fits: np.ndarray | None = None
 
     @staticmethod
     def concatenate(parts: Sequence[MlResult]) -> MlResult:
@@ -2956,7 +2963,8 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
          progress: Callable[[int], None] | None = None,
          width: int = 0, neighbours: bool = True, threshold_sd: bool = False,
          dead_fraction: float | None = None, fast: bool = False,
-         hold_sd: float = math.inf) -> tuple[np.ndarray, ...]:
+         hold_sd: float = math.inf, stats: dict[str, int] | None = None
+         ) -> tuple[np.ndarray, ...]:
     """Every pixel's fit (:func:`_estimate_kernel`); ``progress(pixels_done)`` after each
     of :data:`_PROGRESS_PARTS` parts when given (the same fits, part by part). With
     ``width`` (the pixels an image of that width) and ``neighbours``, the neighbours' fits
@@ -2970,7 +2978,8 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
     ``fast``: the fast fit (:func:`_fast_kernel`; the neighbours' starts for the pixels
     fitted in full only), holding the
     thresholds whose spreads are at most ``hold_sd``; the thresholds' deviations then come
-    from the pixels fitted in full alone (NaN where they were held)."""
+    from the pixels fitted in full alone (NaN where they were held); ``stats["full"]``
+    gets how many were fitted in full."""
     con, coff, scon, scoff = (np.ascontiguousarray(a) for a in priors)
     counts = np.diff(off)
     out_g = np.empty(npx)
@@ -3015,6 +3024,8 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
             progress(b)
     if fast:
         logger.debug("ml: %d of %d pixels fitted in full", int(full.sum()), npx)
+        if stats is not None:
+            stats["full"] = int(np.count_nonzero(full))
     image = width > 0 and npx % width == 0
     if neighbours and image and not fixed and not np.any(sp > 0.0):
         # the fast fit's pixels fitted in full try their neighbours' fits too
@@ -3073,6 +3084,21 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
                              out_flag, son, soff)
         return out_g, out_sd, out_con, out_coff, out_flag, counts, son, soff
     return out_g, out_sd, out_con, out_coff, out_flag, counts
+
+
+def _beyond_range(g: np.ndarray, sd: np.ndarray, flags: np.ndarray, g_lo: float,
+                  g_hi: float) -> None:
+    """Vague fits (:data:`FLAG_UNINFORMED`) within one deviation of a bound of the range,
+    and not of both, made fits at that bound (:data:`FLAG_OUT_OF_RANGE`), in place: the
+    likelihood's plateau runs out of the range, so the events place the pixel beyond
+    where they inform (a highlight above the range, or the dark end below it), and the
+    image holds the bound there as for a fit that reached it, instead of a hole."""
+    vague = (flags == FLAG_UNINFORMED) & np.isfinite(sd)
+    top = vague & (g + sd >= g_hi) & (g - sd > g_lo)
+    bottom = vague & (g - sd <= g_lo) & (g + sd < g_hi)
+    g[top] = g_hi
+    g[bottom] = g_lo
+    flags[top | bottom] = FLAG_OUT_OF_RANGE
 
 
 def estimate(
@@ -3145,6 +3171,7 @@ def estimate(
     nev = np.empty(shape, np.int32)
     sd_on = np.empty(shape, np.float32) if threshold_sd else None
     sd_off = np.empty(shape, np.float32) if threshold_sd else None
+    full_fits = np.zeros(n, np.int64) if fast else None
     for c in range(n):
         off, t, p = group_by_pixel(events, width=width, height=height,
                                    start_us=int(starts[c]), window_us=model.window_us)
@@ -3152,11 +3179,15 @@ def estimate(
         if pixel_progress is not None:
             def step(done: int, c: int = c) -> None:
                 pixel_progress(c * npx + done, n * npx)
+        stats: dict[str, int] = {}
         g, s, c1, c2, fl, counts, *tsd = _run(
             model, off, t, p, npx, priors, g_prior, g_prior_sigma, False, min_events,
             start_sigma, progress=step, width=width, neighbours=neighbours,
             threshold_sd=threshold_sd, dead_fraction=dead_fraction, fast=fast,
-            hold_sd=hold_sd)
+            hold_sd=hold_sd, stats=stats)
+        if full_fits is not None:
+            full_fits[c] = stats["full"]
+        _beyond_range(g, s, fl, model.g_lo, model.g_hi)
         if sd_on is not None and sd_off is not None:
             sd_on[c] = tsd[0].reshape(height, width)
             sd_off[c] = tsd[1].reshape(height, width)
@@ -3185,7 +3216,7 @@ def estimate(
                     "range (%.3g to %.3g): the bound", n_none, n_vague, n_few, n_out,
                     math.exp(model.g_lo), math.exp(model.g_hi))
     return MlResult(radiance=rad, sigma_log=sd, flags=flags, c_on=con, c_off=coff,
-                    n_events=nev, sd_on=sd_on, sd_off=sd_off)
+                    n_events=nev, sd_on=sd_on, sd_off=sd_off, full_fits=full_fits)
 
 
 def fisher_information(
@@ -3295,7 +3326,8 @@ def reconstruct_ml(
     (its silence estimates it, :data:`FLAG_FEW_EVENTS`); without a map, the silent pixels
     the fit takes for dead (:data:`FLAG_NO_EVENTS`) are filled the same way. ``out``
     receives ``sigma_log``,
-    ``flags``, ``c_on``, ``c_off`` and ``n_events`` (:class:`MlResult`'s fields).
+    ``flags``, ``c_on``, ``c_off`` and ``n_events`` (:class:`MlResult`'s fields), and with
+    ``fast`` ``full_fits``.
     ``settled_start``: the pixels start the window at rest on their reference (a single
     ramp from a closed shutter): the start offset is then known to the reset noise (or
     0.02) and one event suffices.
@@ -3390,4 +3422,6 @@ def reconstruct_ml(
     if out is not None:
         out.update(sigma_log=res.sigma_log, flags=res.flags, c_on=res.c_on, c_off=res.c_off,
                    n_events=res.n_events)
+        if res.full_fits is not None:
+            out["full_fits"] = res.full_fits
     return res.radiance

@@ -45,6 +45,7 @@ class MlOutputs:
         self.valid = 0
         self.few = 0
         self.pixels = 0
+        self.full_fits: int | None = None  # with --fast: its pixels fitted in full
         self.active = method == "ml"
         self.formats = formats
         self.extra: dict[str, Any] = {}
@@ -102,6 +103,8 @@ class MlOutputs:
         from asynhdr._atomic import atomic_path
         from asynhdr.ml import FLAG_FEW_EVENTS, FLAG_FILLED, valid_flags
 
+        full = self.extra.get("full_fits")
+        self.full_fits = None if full is None else int(full[0])
         self.filled = int(np.count_nonzero(flags[0] & FLAG_FILLED))
         ok = valid_flags(flags[0])
         self.valid = int(np.count_nonzero(ok))

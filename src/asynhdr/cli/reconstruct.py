@@ -210,6 +210,10 @@ def reconstruct(
                       f"image ({100.0 * mlo.valid / mlo.pixels:.2f} %), {mlo.few:,} of them "
                       "from fewer than two events (128 in _valid.png); the rest are NaN or "
                       "hold a bound of the model's range (0)")
+    if mlo.active and mlo.pixels and mlo.full_fits is not None:
+        console.print(f"ml --fast: {mlo.pixels - mlo.full_fits:,} of {mlo.pixels:,} pixels "
+                      f"fitted fast in the last image, {mlo.full_fits:,} in full (thresholds "
+                      "not yet learned, or a failed check; docs/ml.md)")
     if mlo.active and mlo.defects is not None:
         console.print(f"ml: {int(mlo.defects.sum()):,} dead pixels in the calibration; "
                       f"{mlo.filled:,} of them filled from their neighbours in the last image "
