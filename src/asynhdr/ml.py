@@ -3080,7 +3080,7 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
                              model.v0[1], model.rows, model.g0, model.dlog, model.locate,
                              np.int64(model.window_us), con, coff, scon, scoff,
                              float(start_sigma), out_g, out_sd, out_u, out_con, out_coff,
-                             np.where(full == 1, out_flag, np.uint8(255)) if fast else
+                             np.where(full != 0, out_flag, np.uint8(255)) if fast else
                              out_flag, son, soff)
         return out_g, out_sd, out_con, out_coff, out_flag, counts, son, soff
     return out_g, out_sd, out_con, out_coff, out_flag, counts
