@@ -3341,8 +3341,10 @@ def reconstruct_ml(
     to the next (a recording reconstructed cycle by cycle), else each call starts from
     the nominal thresholds.
     ``fast``: the fast fit (:func:`estimate`; docs/ml.md): ``ln L`` alone with the
-    thresholds held, so it needs them calibrated (``thresholds`` or ``cmap``); about five
-    times faster than the full fit.
+    thresholds held: calibrated ones (``thresholds`` or ``cmap``), or, while learning,
+    each pixel's once learned to :data:`FAST_HOLD_SD` (until then the full fit, which
+    learns); about five times faster than the full fit. Without either (``learn=False``)
+    it raises ``ValueError``, unless the sensor has no mismatch.
     """
     from asynhdr.events import sort_events
 
