@@ -69,7 +69,9 @@ def reconstruct(
                                  "malvar | bilinear | none (write the raw mosaic)."),
     scheduler: str | None = typer.Option(None, help="Spread the cycles over dask workers: "
                                          "'local' (a cluster on this machine) or a "
-                                         "scheduler's address; same images as without."),
+                                         "scheduler's address; same images as without, "
+                                         "except that ml without --calibration learns "
+                                         "the thresholds within each worker's cycles."),
     workers: int | None = typer.Option(None, help="With --scheduler local: worker "
                                        "processes (default: one per core)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace existing images."),
