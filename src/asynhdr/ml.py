@@ -1982,10 +1982,17 @@ _FAST_PROBES = (-0.5, 0.5, -1.0, 1.0, -2.0)
 """... and where the held thresholds' likelihood is higher at one of these distances from
 the fast fit (by :data:`_PROBE_MARGIN`)."""
 _FAST_OUTLIER_Z2 = 9.0
-"""... then once more with the outlier weights when an event lies three deviations off."""
+"""... with the outlier weights from the first step under one standard deviation on, when
+an event lies three deviations off."""
+_FAST_MATH = {"contract", "afn", "reassoc", "arcp"}
+"""The fast fit's passes may fuse, reorder and approximate floating-point operations
+(LLVM's fast-math flags, without those that assume no infinity or NaN)."""
+_FAST_CHI2_Z = 3.0
+"""A fast fit whose chi-square lies more than this many of its standard deviations
+(``sqrt(2 n)``) above its ``n`` events is fitted in full."""
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", fastmath=_FAST_MATH)
 def _fast_pass(mode, g, lo, hi, t, p, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
                dlog, locate, wmax, c1, c2, mu_u, su2, robust, acc):
     """One pass over a pixel's events at ``g`` with the thresholds held at ``c1``, ``c2``
@@ -1994,75 +2001,68 @@ def _fast_pass(mode, g, lo, hi, t, p, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
     ``(sum w r J - sum jac, sum w J^2, sum_on w J, -sum_off w J, max z^2, sum w r^2)``
     (the model of :func:`_normal`, its gradient's Jacobian term included; ``robust``: the
     outlier weights at ``g``). Without a dead time the walk is taken from the first
-    event's level (``u`` drops out)."""
+    event's level (``u`` drops out). Each of the model's four kinds (:data:`MlModel.mode`,
+    with or without a dead time) runs its own loop (:func:`_fast_sums`)."""
+    if mode == 1:
+        if dead:
+            _fast_sums(1, True, g, lo, hi, t, p, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
+                       g0, dlog, locate, wmax, c1, c2, mu_u, su2, robust, acc)
+        else:
+            _fast_sums(1, False, g, lo, hi, t, p, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
+                       g0, dlog, locate, wmax, c1, c2, mu_u, su2, robust, acc)
+    elif dead:
+        _fast_sums(0, True, g, lo, hi, t, p, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
+                   dlog, locate, wmax, c1, c2, mu_u, su2, robust, acc)
+    else:
+        _fast_sums(0, False, g, lo, hi, t, p, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
+                   dlog, locate, wmax, c1, c2, mu_u, su2, robust, acc)
+
+
+@nb.njit(cache=True, inline="always", error_model="numpy")
+def _fast_sums(mode, dead, g, lo, hi, t, p, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
+               dlog, locate, wmax, c1, c2, mu_u, su2, robust, acc):
+    """:func:`_fast_pass` for one kind of model (``mode`` and ``dead`` constants where it
+    is inlined): the first event apart, and no branch on an event's values in the loop."""
     jg, wg, eg = _at_g(mode, g, g0, dlog, rows.shape[1])
-    vs, dgs, _ = _eval(mode, jg, wg, eg, -1, False, exact, v0a, v0b, rows, dlog, locate)
+    m = min(t[lo], wmax - 1)
+    vc, dgc, dtc = _eval(mode, jg, wg, eg, m, False, exact, v0a, v0b, rows, dlog, locate)
     a = 0.0
     b = 0.0
     b_on = 0.0
     b_off = 0.0
     z_max = 0.0
     chi2 = 0.0
-    prev = -1
-    base = vs
-    dbase = dgs
+    if dead:
+        vs, dgs, _ = _eval(mode, jg, wg, eg, -1, False, exact, v0a, v0b, rows, dlog, locate)
+        # the first event from the cycle start's level
+        a, b, b_on, b_off, z_max, chi2 = _fast_term(
+            mode, jg, wg, eg, m, p[lo] > 0, vc, dgc, dtc, vs + mu_u, dgs,
+            sr2 + dtc * dtc * tq2 + su2, c1, c2, lam, robust, exact, rows, dlog, locate,
+            a, b, b_on, b_off, z_max, chi2)
+    # without a dead time, the walk from the first event's level, the crossing it stamps
+    base = vc
+    dbase = dgc
+    var0 = dtc * dtc * tq2
     level = 0.0
-    k_ev = 0
-    var0 = 0.0
-    for i in range(lo, hi):
-        m = t[i]
-        if m >= wmax:
-            m = wmax - 1
+    prev = m
+    for i in range(lo + 1, hi):
+        m = min(t[i], wmax - 1)
         vc, dgc, dtc = _eval(mode, jg, wg, eg, m, False, exact, v0a, v0b, rows, dlog, locate)
         on = p[i] > 0
         step = c1 if on else -c2
         if dead:
-            if prev < 0:
-                ref = vs + mu_u
-                dref = dgs
-                var = sr2 + dtc * dtc * tq2 + su2
-            else:
-                ref, dref, dte = _eval(mode, jg, wg, eg, prev, True, exact, v0a, v0b, rows,
-                                       dlog, locate)
-                var = sr2 + dtc * dtc * tq2 + dte * dte * eq2
+            ref, dref, dte = _eval(mode, jg, wg, eg, prev, True, exact, v0a, v0b, rows, dlog,
+                                   locate)
+            var = sr2 + dtc * dtc * tq2 + dte * dte * eq2
             prev = m
         else:
-            if prev < 0:
-                # the walk from the first event's level, the crossing it stamps
-                prev = m
-                base = vc
-                dbase = dgc
-                var0 = dtc * dtc * tq2
-                continue
-            k_ev += 1
             level += step
             ref = base + level - step
             dref = dbase
-            var = sr2 * k_ev + dtc * dtc * tq2 + var0
-        r = vc - ref - step
-        jj = dgc - dref
-        if var < 1e-12:
-            var = 1e-12
-        w = 1.0 / var
-        z2 = r * r * w
-        if z2 > z_max:
-            z_max = z2
-        jac = 0.0
-        if dtc != 0.0:
-            jac = _slope_g(mode, jg, wg, eg, m, exact, rows, dlog, locate) / dtc
-            jac = min(max(jac, -_JACOBIAN_MAX), _JACOBIAN_MAX)
-        if robust:
-            f = math.exp(-0.5 * z2) * abs(dtc) * math.sqrt(w) * 0.3989422804014327
-            gam = f / (f + lam)
-            w *= gam
-            jac *= gam
-        chi2 += w * r * r
-        a += w * r * jj - jac
-        b += w * jj * jj
-        if on:
-            b_on += w * jj
-        else:
-            b_off -= w * jj
+            var = sr2 * (i - lo) + dtc * dtc * tq2 + var0
+        a, b, b_on, b_off, z_max, chi2 = _fast_term(
+            mode, jg, wg, eg, m, on, vc, dgc, dtc, ref, dref, var, c1, c2, lam, robust,
+            exact, rows, dlog, locate, a, b, b_on, b_off, z_max, chi2)
     acc[0] = a
     acc[1] = b
     acc[2] = b_on
@@ -2071,12 +2071,40 @@ def _fast_pass(mode, g, lo, hi, t, p, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
     acc[5] = chi2
 
 
+@nb.njit(cache=True, inline="always", error_model="numpy")
+def _fast_term(mode, jg, wg, eg, m, on, vc, dgc, dtc, ref, dref, var, c1, c2, lam, robust,
+               exact, rows, dlog, locate, a, b, b_on, b_off, z_max, chi2):
+    """One event's terms of :func:`_fast_pass`'s sums, added."""
+    step = c1 if on else -c2
+    r = vc - ref - step
+    jj = dgc - dref
+    w = 1.0 / max(var, 1e-12)
+    z2 = r * r * w
+    z_max = max(z_max, z2)
+    # dV/dt's own slope read whatever dV/dt (the slot is valid): no branch before it
+    jac = _slope_g(mode, jg, wg, eg, m, exact, rows, dlog, locate) / dtc
+    jac = min(max(jac, -_JACOBIAN_MAX), _JACOBIAN_MAX) if dtc != 0.0 else 0.0
+    if robust:
+        f = math.exp(-0.5 * z2) * abs(dtc) * math.sqrt(w) * 0.3989422804014327
+        gam = f / (f + lam)
+        w *= gam
+        jac *= gam
+    wj = w * jj
+    chi2 += w * r * r
+    a += w * r * jj - jac
+    b += wj * jj
+    b_on += wj if on else 0.0
+    b_off -= 0.0 if on else wj
+    return a, b, b_on, b_off, z_max, chi2
+
+
 @nb.njit(cache=True, error_model="numpy")
 def _fast_check(mode, gs, nk, lo, hi, t, p, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
-                g0, dlog, locate, wmax, c1, c2, mu_u, su2, ws, nl):
+                g0, dlog, locate, wmax, c1, c2, mu_u, su2, ws, nl, prod):
     """The events' ``-2 sum ln(f_i + lambda)`` (:func:`_fit_nll`'s density) under
     :func:`_fast_pass`'s model, at each of the ``nk`` points ``gs[:nk]``, into ``nl[:nk]``:
-    one pass, each event's slots read once for all points (``ws``: ``(nk, 6)`` work)."""
+    one pass, each event's slots read once for all points (``ws``: ``(nk, 6)`` work,
+    ``prod``: ``(nk,)``)."""
     nr = rows.shape[1]
     for k in range(nk):
         j, w, e = _at_g(mode, gs[k], g0, dlog, nr)
@@ -2085,6 +2113,7 @@ def _fast_check(mode, gs, nk, lo, hi, t, p, dead, sr2, tq2, eq2, lam, exact, v0a
         ws[k, 1] = w
         ws[k, 2] = e
         ws[k, 3] = vs
+        prod[k] = 1.0
         nl[k] = 0.0
     prev = -1
     level = 0.0
@@ -2128,7 +2157,16 @@ def _fast_check(mode, gs, nk, lo, hi, t, p, dead, sr2, tq2, eq2, lam, exact, v0a
                 var = 1e-12
             iw = 1.0 / var
             f = math.exp(-0.5 * r * r * iw) * abs(dtc) * math.sqrt(iw) * 0.3989422804014327
-            nl[k] -= 2.0 * math.log(max(f + lam, _DENSITY_FLOOR))
+            # the densities multiplied, the logarithm taken before the product could leave
+            # float64's range
+            d = max(f + lam, _DENSITY_FLOOR)
+            q = prod[k] * d
+            if q < 1e-150 or q > 1e150:
+                nl[k] -= 2.0 * (math.log(prod[k]) + math.log(d))
+                q = 1.0
+            prod[k] = q
+    for k in range(nk):
+        nl[k] -= 2.0 * math.log(prod[k])
 
 
 @nb.njit(cache=True, parallel=True, error_model="numpy")
@@ -2153,6 +2191,7 @@ def _fast_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, row
         acc = np.zeros(6)
         gs = np.empty(len(_FAST_PROBES) + 1)
         nl = np.empty(len(_FAST_PROBES) + 1)
+        prod = np.empty(len(_FAST_PROBES) + 1)
         ws = np.empty((len(_FAST_PROBES) + 1, 6))
         res, saved, work, scan = _fit_space(g_lo, g_hi)
         for px in range(blk * _BLOCK, min(npx, (blk + 1) * _BLOCK)):
@@ -2199,13 +2238,18 @@ def _fast_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, row
                         break
                     robust = True
                     last = 0.0
+                elif not robust and acc[4] >= _FAST_OUTLIER_Z2 and lam > 0.0 and \
+                        abs(last) * math.sqrt(acc[1]) < 1.0:
+                    # near enough for the residuals to tell the outliers
+                    robust = True
+                    last = 0.0
             var = 1.0 / acc[1] if acc[1] > 0.0 else np.inf
             # the thresholds held: their spread moves g by dg/dc = sum w J / sum w J^2
             var += (acc[2] * acc[2] * s1 * s1 + acc[3] * acc[3] * s2 * s2) * var * var
             n = hi - lo
             flag = _fit_flag(g, var, g_lo, g_hi)
             poor = not converged or flag != 0 or \
-                acc[5] > n + _CHI2_RESCUE * math.sqrt(2.0 * n) + 2.0
+                acc[5] > n + _FAST_CHI2_Z * math.sqrt(2.0 * n) + 2.0
             if not poor:
                 # the likelihood's profile (thresholds held) at a few points about the fit:
                 # a likelier one means another optimum, which the full fit weighs
@@ -2217,7 +2261,8 @@ def _fast_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, row
                         gs[nk] = gq
                         nk += 1
                 _fast_check(mode, gs, nk, lo, hi, t, p, dead, sr2, tq2, eq2, lam, exact, v0a,
-                            v0b, rows, g0, dlog, locate, wmax, c1, c2, mu_u, su * su, ws, nl)
+                            v0b, rows, g0, dlog, locate, wmax, c1, c2, mu_u, su * su, ws, nl,
+                            prod)
                 for k in range(1, nk):
                     if nl[k] < nl[0] - _PROBE_MARGIN:
                         poor = True
