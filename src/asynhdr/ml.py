@@ -2071,7 +2071,7 @@ def _fast_sums(mode, dead, g, lo, hi, t, p, sr2, tq2, eq2, lam, exact, v0a, v0b,
     acc[5] = chi2
 
 
-@nb.njit(cache=True, inline="always", error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", fastmath=_FAST_MATH)
 def _fast_term(mode, jg, wg, eg, m, on, vc, dgc, dtc, ref, dref, var, c1, c2, lam, robust,
                exact, rows, dlog, locate, a, b, b_on, b_off, z_max, chi2):
     """One event's terms of :func:`_fast_pass`'s sums, added."""
