@@ -2023,6 +2023,9 @@ def _fast_sums(mode, dead, g, lo, hi, t, p, sr2, tq2, eq2, lam, exact, v0a, v0b,
                dlog, locate, wmax, c1, c2, mu_u, su2, robust, acc):
     """:func:`_fast_pass` for one kind of model (``mode`` and ``dead`` constants where it
     is inlined): the first event apart, and no branch on an event's values in the loop."""
+    if hi <= lo:
+        acc[:] = 0.0
+        return
     jg, wg, eg = _at_g(mode, g, g0, dlog, rows.shape[1])
     m = min(t[lo], wmax - 1)
     vc, dgc, dtc = _eval(mode, jg, wg, eg, m, False, exact, v0a, v0b, rows, dlog, locate)
