@@ -937,51 +937,6 @@ def test_fast_fit_agrees_with_the_full_fit_for_each_kind_of_model(
     assert np.mean(np.abs(z) < 3.0) >= 0.9
 
 
-@pytest.mark.parametrize("preset", ["imx636", "v2e", "davis346"])
-def test_fast_checks_bound_drops_only_points_that_cannot_win(preset: str) -> None:
-    # the check's points are dropped once their sums, plus the least the events left can
-    # add, reach the bar: every dropped point's whole sum lies at or above it, every kept
-    # one's is as without dropping, and the least is below every point's sum
-    rig = default_rig(preset)
-    sensor = get_preset(preset).with_(name="check", **QUIET)
-    levels = np.geomspace(1.0, 1.0e5, 6)
-    w = 8
-    rec = simulate(_scene(levels, w), rig=rig, sensor=sensor, n_cycles=1, rng=2,
-                   sensor_seed=1)
-    model = ml.ml_model(rig, sensor)
-    off, t, p = ml.group_by_pixel(rec.events, width=w, height=levels.size, start_us=0,
-                                  window_us=model.window_us)
-    tq2 = model.jitter_us ** 2 + model.res_us ** 2 / 12.0
-    eq2 = model.res_us ** 2 / 12.0 + (model.jitter_us ** 2 if model.dead else 0.0)
-    slope_max = np.abs(model.rows[:, :, 1]).max(axis=1).astype(np.float64)
-    l_lo, l_hi = math.exp(model.g_lo), math.exp(model.g_hi)
-    c = sensor.threshold_on
-    args = (model.dead, model.reset_sigma ** 2, tq2, eq2, model.noise_rate_per_us,
-            model.exact, model.v0[0], model.v0[1], model.rows, model.g0, model.dlog,
-            model.locate, np.int64(model.window_us), c, sensor.threshold_off, 0.0, 1e-4)
-    dropped = kept = 0
-    for px in range(w * levels.size):
-        lo, hi = int(off[px]), int(off[px + 1])
-        if hi - lo < 2:
-            continue
-        gs = math.log(levels[px // w]) + np.array([-2.0, -1.0, -0.5, 0.0, 0.5, 1.0])
-        ws, nl, prod = np.empty((6, 6)), np.empty(6), np.empty(6)
-        least = ml._fast_check(model.mode, gs, 6, lo, hi, t, p, *args, ws, nl, prod,
-                               np.inf, slope_max, l_lo, l_hi, 0.0)
-        whole = nl.copy()
-        assert np.all(np.isfinite(whole)) and least <= whole.min() + 1e-9
-        bar = float(np.median(whole))
-        ml._fast_check(model.mode, gs, 6, lo, hi, t, p, *args, ws, nl, prod, bar,
-                       slope_max, l_lo, l_hi, least)
-        gone = nl == np.inf
-        assert np.all(whole[gone] >= bar)
-        np.testing.assert_allclose(nl[~gone], whole[~gone], rtol=1e-12)
-        dropped += int(gone.sum())
-        kept += int((~gone).sum())
-    # without reset noise the bound (the timestamp's noise alone) is too loose to drop any
-    assert kept > 0 and (dropped > 0) == (sensor.reset_noise_sigma > 0)
-
-
 def test_fast_fit_needs_thresholds_calibrated_or_learned(tmp_path) -> None:
     from typer.testing import CliRunner
 

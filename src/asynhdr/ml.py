@@ -2101,24 +2101,13 @@ def _fast_term(mode, jg, wg, eg, m, on, vc, dgc, dtc, ref, dref, var, c1, c2, la
     return a, b, b_on, b_off, z_max, chi2
 
 
-_CHECK_EVERY = 16
-""":func:`_fast_check` takes its sums' logarithms, and drops the points that can no longer
-win, after every this many events."""
-
-
 @nb.njit(cache=True, error_model="numpy")
 def _fast_check(mode, gs, nk, lo, hi, t, p, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
-                g0, dlog, locate, wmax, c1, c2, mu_u, su2, ws, nl, prod, stop, slope_max,
-                l_lo, l_hi, floor_sum):
+                g0, dlog, locate, wmax, c1, c2, mu_u, su2, ws, nl, prod):
     """The events' ``-2 sum ln(f_i + lambda)`` (:func:`_fit_nll`'s density) under
     :func:`_fast_pass`'s model, at each of the ``nk`` points ``gs[:nk]``, into ``nl[:nk]``:
     one pass, each event's slots read once for all points (``ws``: ``(nk, 6)`` work,
-    ``prod``: ``(nk,)``). Returns the least the sum could be at any ``g``: each event's
-    density is at most ``|dV/dt| / sqrt(2 pi (sr2 + dV/dt^2 tq2))`` plus the background,
-    with ``|dV/dt|`` its largest over the range (``slope_max``: mode 1's per table row,
-    ``l_lo``, ``l_hi``: the range's radiances, mode 0's). A point whose sum so far plus
-    that least for the events left (``floor_sum``: the whole pixel's) reaches ``stop``
-    is dropped, its ``nl`` set to infinity."""
+    ``prod``: ``(nk,)``)."""
     nr = rows.shape[1]
     for k in range(nk):
         j, w, e = _at_g(mode, gs[k], g0, dlog, nr)
@@ -2129,13 +2118,10 @@ def _fast_check(mode, gs, nk, lo, hi, t, p, dead, sr2, tq2, eq2, lam, exact, v0a
         ws[k, 3] = vs
         prod[k] = 1.0
         nl[k] = 0.0
-    live = nk
     prev = -1
     level = 0.0
     k_ev = 0
     b0 = b1 = b2 = b3 = 0.0
-    least = 0.0
-    qb = 1.0
     for i in range(lo, hi):
         m = t[i]
         if m >= wmax:
@@ -2149,21 +2135,7 @@ def _fast_check(mode, gs, nk, lo, hi, t, p, dead, sr2, tq2, eq2, lam, exact, v0a
             k_ev += 1
             level += step
         prev = m
-        if dead or not first:
-            # the most this event's density can be, at any g of the range
-            if mode == 1:
-                smax = slope_max[int(a0)] * abs(a2)
-            else:
-                smax = max(abs((a2 * l_lo + a3) / (a0 * l_lo + a1)),
-                           abs((a2 * l_hi + a3) / (a0 * l_hi + a1)))
-            qb *= smax / math.sqrt(max(sr2 + smax * smax * tq2, 1e-300)) * \
-                0.3989422804014327 + lam
-            if qb > 1e150 or qb < 1e-150:
-                least -= 2.0 * math.log(qb)
-                qb = 1.0
         for k in range(nk):
-            if nl[k] == np.inf:
-                continue
             j = int(ws[k, 0])
             w = ws[k, 1]
             e = ws[k, 2]
@@ -2196,30 +2168,15 @@ def _fast_check(mode, gs, nk, lo, hi, t, p, dead, sr2, tq2, eq2, lam, exact, v0a
                 nl[k] -= 2.0 * (math.log(prod[k]) + math.log(d))
                 q = 1.0
             prod[k] = q
-        if stop < np.inf and (i - lo) % _CHECK_EVERY == _CHECK_EVERY - 1 and i + 1 < hi:
-            least -= 2.0 * math.log(qb)
-            qb = 1.0
-            for k in range(nk):
-                if nl[k] == np.inf:
-                    continue
-                nl[k] -= 2.0 * math.log(prod[k])
-                prod[k] = 1.0
-                if nl[k] + (floor_sum - least) >= stop:
-                    nl[k] = np.inf
-                    live -= 1
-            if live == 0:
-                return least
     for k in range(nk):
-        if nl[k] != np.inf:
-            nl[k] -= 2.0 * math.log(prod[k])
-    return least - 2.0 * math.log(qb)
+        nl[k] -= 2.0 * math.log(prod[k])
 
 
 @nb.njit(cache=True, parallel=True, error_model="numpy")
 def _fast_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0, dlog,
                  locate, wmax, g_lo, g_hi, net_g, net_v, min_events, con0, coff0, scon,
                  scoff, out_g, out_sd, out_con, out_coff, out_flag, u_sd, split, net_v2,
-                 split2, order, out_u, out_full, hold_sd, slope_max):
+                 split2, order, out_u, out_full, hold_sd):
     """Every pixel's fast fit (docs/ml.md, "The fast fit"): ``g`` alone, the thresholds
     held at their priors (a calibration's, or learned ones whose spreads are at most
     ``hold_sd``: the others are fitted in full), by Newton's method on the likelihood from
@@ -2231,8 +2188,6 @@ def _fast_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, row
     ``split2`` and ``net_v2`` are the full fit's."""
     npx = off.shape[0] - 1
     nblk = order.shape[0]
-    l_lo = math.exp(g_lo)
-    l_hi = math.exp(g_hi)
     for bi in nb.prange(nblk):
         blk = order[bi]
         h, bvec, x, lmat, wy, wz, stat, st_o = _workspace()
@@ -2301,14 +2256,8 @@ def _fast_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, row
             if not poor:
                 # the likelihood's profile (thresholds held) at a few points about the fit:
                 # a likelier one means another optimum, which the full fit weighs
-                # (the fit's own first, then the points, each dropped once it cannot win)
                 gs[0] = g
-                least = _fast_check(mode, gs, 1, lo, hi, t, p, dead, sr2, tq2, eq2, lam,
-                                    exact, v0a, v0b, rows, g0, dlog, locate, wmax, c1, c2,
-                                    mu_u, su * su, ws, nl, prod, np.inf, slope_max, l_lo,
-                                    l_hi, 0.0)
-                bar = nl[0] - _PROBE_MARGIN
-                nk = 0
+                nk = 1
                 for d in _FAST_PROBES:
                     gq = min(max(g + d, g_lo), g_hi)
                     if gq != g:
@@ -2316,9 +2265,9 @@ def _fast_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, row
                         nk += 1
                 _fast_check(mode, gs, nk, lo, hi, t, p, dead, sr2, tq2, eq2, lam, exact, v0a,
                             v0b, rows, g0, dlog, locate, wmax, c1, c2, mu_u, su * su, ws, nl,
-                            prod, bar, slope_max, l_lo, l_hi, least)
-                for k in range(nk):
-                    if nl[k] < bar:
+                            prod)
+                for k in range(1, nk):
+                    if nl[k] < nl[0] - _PROBE_MARGIN:
                         poor = True
                         break
             if poor:
@@ -3095,8 +3044,6 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
     parts = 1 if progress is None else min(_PROGRESS_PARTS, max(1, npx // _BLOCK))
     edges = np.linspace(0, npx, parts + 1).astype(np.int64)
     full = np.zeros(npx, np.uint8)
-    # each photoreceptor table row's steepest dV/dt over the range (the fast fit's check)
-    slope_max = np.abs(model.rows[:, :, 1]).max(axis=1).astype(np.float64)
     for a, b in zip(edges[:-1].tolist(), edges[1:].tolist(), strict=True):
         if fast and not fixed:
             _fast_kernel(off[a:b + 1], t, p, model.mode, model.dead, model.reset_sigma ** 2,
@@ -3107,7 +3054,7 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
                          scoff[a:b], out_g[a:b], out_sd[a:b], out_con[a:b], out_coff[a:b],
                          out_flag[a:b], float(start_sigma), np.int64(model.split_us),
                          model.net_v2, np.int64(model.split2_us), block_order(b - a, _BLOCK),
-                         out_u[a:b], full[a:b], float(hold_sd), slope_max)
+                         out_u[a:b], full[a:b], float(hold_sd))
             if progress is not None:
                 progress(b)
             continue
