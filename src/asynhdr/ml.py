@@ -3391,7 +3391,7 @@ def reconstruct_ml(
     ``fast``: the fast fit (:func:`estimate`; docs/ml.md): ``ln L`` alone with the
     thresholds held: calibrated ones (``thresholds`` or ``cmap``), or, while learning,
     each pixel's once learned to :data:`FAST_HOLD_SD` (until then the full fit, which
-    learns); about five times faster than the full fit. Without either (``learn=False``)
+    learns); 5x to 9x faster than the full fit on the bench. Without either (``learn=False``)
     it raises ``ValueError``, unless the sensor has no mismatch.
     """
     from asynhdr.events import sort_events

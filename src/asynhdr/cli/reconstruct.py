@@ -83,8 +83,8 @@ def reconstruct(
                                             "thresholds, for ml."),
     fast: bool = typer.Option(False, "--fast", help="ml's fast fit: ln L alone, each "
                               "pixel's thresholds held at the calibration's, or (without "
-                              "--calibration) once learned from the cycles before; about "
-                              "five times faster (docs/ml.md)."),
+                              "--calibration) once learned from the cycles before; 5x to 9x "
+                              "faster on the bench (docs/ml.md)."),
 ) -> None:
     """Reconstruct one HDR image per modulation cycle.
 
