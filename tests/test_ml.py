@@ -908,9 +908,9 @@ def test_fast_fit_agrees_with_the_full_fit_for_each_kind_of_model(
     # the fast fit runs one loop per kind of model (exact waveforms or the photoreceptor's
     # table, with or without a dead time). With a dead time (reset noise 0.01), its
     # estimate lies where the full fit's optimum does, to a small share of the deviation.
-    # Without one the reference walks by the threshold, exact without reset noise: both
-    # fits then recover L to the timestamp quantum's share (the walk's reset noise is
-    # taken as independent per event, docs/ml.md, so none is simulated)
+    # Without one, and without reset noise (which would make it a chain, below), the
+    # reference walks by the threshold exactly: both fits then recover L to the timestamp
+    # quantum's share
     rig = default_rig("ideal")
     dead = refractory_us > 0
     sensor = get_preset("ideal").with_(name="kind", cutoff_hz=cutoff_hz,
@@ -935,6 +935,33 @@ def test_fast_fit_agrees_with_the_full_fit_for_each_kind_of_model(
     assert np.mean(d <= 0.25 * full.sigma_log[0]) >= 0.9
     z = np.log(fast.radiance[0] / truth) / fast.sigma_log[0]
     assert np.mean(np.abs(z) < 3.0) >= 0.9
+
+
+@pytest.mark.parametrize("fast", [False, True])
+def test_reset_noise_without_a_dead_time_is_a_chain_with_honest_deviations(
+        fast: bool) -> None:
+    # no dead time, no jitter, reset noise 0.01: each reference is the level crossed plus
+    # a fresh draw, so a walk by the threshold would accumulate the draws along it (its
+    # errors correlated from event to event, taken as independent: with the walk the
+    # RMS of the error over the stated deviation read 1.1 to 3.5 over these levels, and
+    # the spread was up to twice the chain's). The chain conditional on each previous
+    # event states deviations that the errors bear out
+    rig = default_rig("ideal")
+    sensor = get_preset("ideal").with_(name="reset", reset_noise_sigma=0.01)
+    assert sensor.refractory_us == 0 and sensor.jitter_sigma_us == 0
+    model = ml.ml_model(rig, sensor)
+    assert model.dead
+    levels = np.geomspace(3.0, 3.0e4, 5)
+    w = 60
+    truth = _scene(levels, w)
+    rec = simulate(truth, rig=rig, sensor=sensor, n_cycles=1, rng=5, sensor_seed=1)
+    pri = ml.thresholds_prior(sensor, width=w, height=levels.size, sigma=1e-6)
+    res = ml.estimate(rec.events, width=w, height=levels.size,
+                      starts_us=rig.cycle_starts_us(1), model=model, priors=pri, fast=fast)
+    assert np.all(res.flags[0] == 0)
+    z = np.log(res.radiance[0] / truth) / res.sigma_log[0]
+    for row in z:
+        assert 0.75 < float(np.sqrt(np.mean(row ** 2))) < 1.3
 
 
 def test_fast_fit_needs_thresholds_calibrated_or_learned(tmp_path) -> None:

@@ -8,7 +8,8 @@ included), or the photoreceptor's low-pass output of it
 log-radiance grid). An event fires when ``V`` leaves the band ``(ref - c_off, ref + c_on)``
 around the pixel's reference; its timestamp is ``floor(t_c + jitter + latency)``; the
 reference is then taken at the end of the dead time, ``t_e = t_f + latency + refractory``,
-with reset noise (or, for a pixel without dead time, moves to the level crossed).
+with reset noise (or, for a pixel without dead time, jitter or reset noise, moves to the
+level crossed).
 
 Per pixel and cycle the events ``(t_i, p_i)`` give one equation each, conditional on the
 previous event (the chain the pixel itself follows)::
@@ -16,11 +17,16 @@ previous event (the chain the pixel itself follows)::
     r_i = V(t_c,i; g) - ref_i - p_i c_{p_i}  ~  N(0, s_i^2)
 
     t_c,i = t_i + res/2 - latency                  (the crossing, from the stamp)
-    ref_i = V(t_e,i-1; g)                          (dead time: t_e = t_i-1 + res/2 + refractory)
-    ref_i = V(0; g) + u + sum_{k<i} p_k c_{p_k}    (no dead time: the level walks by c)
+    ref_i = V(t_e,i-1; g)                          (t_e = t_i-1 + res/2 + refractory)
+    ref_i = V(0; g) + u + sum_{k<i} p_k c_{p_k}    (exact reset: the level walks by c)
     ref_1 = V(0; g) + u                            (the first event of the cycle)
-    s_i^2 = sigma_reset^2 (i for the walk) + V'(t_c,i)^2 (sigma_jitter^2 + res^2/12)
-            + V'(t_e,i-1)^2 res^2 / 12
+    s_i^2 = sigma_reset^2 + V'(t_c,i)^2 (sigma_jitter^2 + res^2/12)
+            + V'(t_e,i-1)^2 res^2 / 12             (the walk: V'(t_c,i)^2 res^2/12 only)
+
+The walk holds for a pixel whose reference is exactly the level it crossed (no dead
+time, jitter or reset noise); any of them makes each reference a new draw about the level
+at the previous event, so the chain (a dead time of zero at least) is the model: a walk
+would accumulate the reset noise along it, correlated from event to event.
 
 ``u`` is where the reference stood at the cycle's start relative to ``V(0)`` (unknown:
 a prior uniform over ``(-c_on, c_off)``, used as a Gaussian of the same mean and
@@ -42,8 +48,9 @@ with.
 
 What is approximate, and stated as such: ``s_i`` is held at the current estimate in each
 step (the dependence of the noise on ``g`` through ``V'`` is not differentiated); the
-density's Jacobian ``|V'(t_c)|`` enters the outlier weights only; the walk's reset noise
-is taken as independent per event; the prior on ``u`` is Gaussian, not uniform; the
+density's Jacobian ``|V'(t_c)|`` enters the outlier weights only; the previous stamp's
+quantum enters ``s_i`` as if independent of the next equation's; the prior on ``u`` is
+Gaussian, not uniform; the
 photoreceptor's state at the cycle start is the periodic steady state (two cycles
 integrated); the readout's queueing delays (the arbiter) and hot pixels are not modelled;
 crossings that the jitter clamps to the end of a dead time are treated as unclamped.
@@ -195,8 +202,9 @@ class MlModel:
     window_us : length of the window (µs from the cycle start) the tables cover.
     mode : 0: the exact log irradiance (no photoreceptor low-pass); 1: tabulated low-pass.
     g_lo, g_hi : the model's range of ``g = ln L``.
-    dead : True when the pixel has a dead time (latency or refractory > 0, or jitter):
-        the reference is taken at the end of each dead time; else it walks by ``c``.
+    dead : True when the pixel's reference is not exactly the level it crossed (latency or
+        refractory > 0, jitter or reset noise): the reference is taken at the end of each
+        dead time (the stamp, without one); else it walks by ``c``.
     reset_sigma, jitter_us, res_us : reset noise (log), jitter (µs), timestamp quantum (µs).
     noise_rate_per_us : background events per pixel per µs (outlier rate).
     exact : ``(W, 8)`` float64 per whole µs slot for mode 0: ``a1, b2, da1, db2`` at the
@@ -340,7 +348,10 @@ def ml_model(rig: Rig, sensor: SensorParams, *, window_us: float | None = None,
     m = np.arange(w_us, dtype=np.float64)
     tc = np.clip(m + 0.5 * res - lat, 0.0, period)
     te = np.clip(m + 0.5 * res + refr, 0.0, period)
-    dead = lat > 0 or refr > 0 or sensor.jitter_sigma_us > 0
+    # the chain of events conditional on the previous one whenever the reference is not
+    # exactly the level crossed (a dead time, jitter or reset noise); the walk by ``c``
+    # only for a pixel whose reference is (its levels' errors would accumulate along it)
+    dead = lat > 0 or refr > 0 or sensor.jitter_sigma_us > 0 or sensor.reset_noise_sigma > 0
     kl, lc = rig.k_lens, rig.l_const
     ks = knots * period
     a1k = kl * t1v
