@@ -591,6 +591,14 @@ def _slope_g(mode, j, w, e, m, exact, rows, dlog, locate):
     return (rows[k, j + 1, 1] - rows[k, j, 1]) * locate[m, 4] / dlog
 
 
+@nb.njit(cache=True, inline="always", error_model="numpy")
+def _time_density(z2, slope, iw):
+    """An event's density in time, ``phi(z) |dV/dt| / s``, from ``z2 = z^2``, ``slope =
+    dV/dt`` at the crossing and ``iw = 1 / s^2``: every fit's likelihood and outlier
+    weight."""
+    return math.exp(-0.5 * z2) * abs(slope) * math.sqrt(iw) * 0.3989422804014327
+
+
 _JACOBIAN_MAX = 10.0
 """Bound on ``|d ln|dV/dt| / dg|`` per event in the fit's gradient (near a turn of ``V``,
 where ``dV/dt`` passes zero, the term is large and means little)."""
@@ -783,7 +791,8 @@ def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exac
         if dtc != 0.0:
             jac = _slope_g(mode, jg, wg, eg, m, exact, rows, dlog, locate) / dtc
             jac = min(max(jac, -_JACOBIAN_MAX), _JACOBIAN_MAX)
-        w = 1.0 / var
+        iw = 1.0 / var
+        w = iw
         z2 = r * r * w
         z_sum += z2
         if z2 > z_max:
@@ -794,8 +803,7 @@ def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exac
             w *= hw
             jac *= hw
         if lam > 0.0 or lam_nll >= 0.0:
-            sd = math.sqrt(var)
-            f = math.exp(-0.5 * z2) * abs(dtc) / (sd * 2.5066282746310002)
+            f = _time_density(z2, dtc, iw)
             if lam_nll >= 0.0:
                 nll -= 2.0 * math.log(max(f + lam_nll, _DENSITY_FLOOR))
             if lam > 0.0:
@@ -1527,8 +1535,7 @@ def _profile_from_values(buf, n, q, lam, c1, c2, s1, s2, su, mu_u, th):
                 if z2 > _HUBER * _HUBER:
                     w *= _HUBER / math.sqrt(z2)
             elif lam > 0.0:
-                f = math.exp(-0.5 * z2) * buf[k, col + 2] / (math.sqrt(var)
-                                                             * 2.5066282746310002)
+                f = _time_density(z2, buf[k, col + 2], w)
                 w *= f / (f + lam)
             h00 += w * a0 * a0
             h01 += w * a0 * a1
@@ -1566,8 +1573,8 @@ def _profile_from_values(buf, n, q, lam, c1, c2, s1, s2, su, mu_u, th):
         d = buf[k, col]
         var = buf[k, col + 1]
         r = d + buf[k, 0] * th0 + buf[k, 1] * th1 + buf[k, 2] * th2
-        f = math.exp(-0.5 * r * r / var) * buf[k, col + 2] / (math.sqrt(var)
-                                                              * 2.5066282746310002)
+        iw = 1.0 / var
+        f = _time_density(r * r * iw, buf[k, col + 2], iw)
         nll -= 2.0 * math.log(max(f + lam_nll, _DENSITY_FLOOR))
     th[0] = th0
     th[1] = th1
@@ -2099,7 +2106,7 @@ def _fast_term(mode, jg, wg, eg, m, on, vc, dgc, dtc, ref, dref, var, c1, c2, la
     jac = _slope_g(mode, jg, wg, eg, m, exact, rows, dlog, locate) / dtc
     jac = min(max(jac, -_JACOBIAN_MAX), _JACOBIAN_MAX) if dtc != 0.0 else 0.0
     if robust:
-        f = math.exp(-0.5 * z2) * abs(dtc) * math.sqrt(w) * 0.3989422804014327
+        f = _time_density(z2, dtc, w)
         gam = f / (f + lam)
         w *= gam
         jac *= gam
@@ -2170,7 +2177,7 @@ def _fast_check(mode, gs, nk, lo, hi, t, p, dead, sr2, tq2, eq2, lam, exact, v0a
             if var < 1e-12:
                 var = 1e-12
             iw = 1.0 / var
-            f = math.exp(-0.5 * r * r * iw) * abs(dtc) * math.sqrt(iw) * 0.3989422804014327
+            f = _time_density(r * r * iw, dtc, iw)
             # the densities multiplied, the logarithm taken before the product could leave
             # float64's range
             d = max(f + lam, _DENSITY_FLOOR)
