@@ -8,7 +8,11 @@ middle of the rig's working range (:meth:`asynhdr.rig.Rig.mid_radiance`: the geo
 middle of the range a designed rig was designed for, 178 lux for the presets' defaults;
 ``L_const sqrt(CR_1)``, 316 lux, for the paper's rig), unless a scale is given. The map
 keeps its aspect (padded
-onto the sensor, never stretched); the padding is left out of every metric.
+onto the sensor, never stretched); the padding is left out of every metric. A scene wider
+than the rig's working range has pixels beyond it at any exposure; every figure counts
+them, and the log RMSE and PU21-PSNR over the rest stand beside (``*_in_range``), with
+the shares above and below the range in the metadata: what the range costs, apart from
+what the method does within it.
 
 The frame camera has the same pixel count and sees the same sensor illuminance (the
 scene's radiance in lux, panel open). Its brackets: ``mef-10``, ten exposures from the
@@ -231,6 +235,7 @@ def evaluate_scene(
     del rec
 
     inside = truth[valid]
+    n_valid = inside.size
     l_max = float(inside.max())
     l_min = float(np.percentile(inside, 0.1))
     full = exposure_bracket(cam, l_min_lux=l_min, l_max_lux=l_max, n=n_exposures)
@@ -248,10 +253,18 @@ def evaluate_scene(
                             (cam.electrons_per_lux_s * t_auto)).astype(np.float32)
     tick(f"{name}: frame camera", 1, 1)
 
+    # what the rig can measure: its working range; the pixels beyond it hold a bound (or
+    # nothing), as a camera's saturated pixels do, and every figure counts them; beside
+    # them the log error and PU21 over the rest
+    r_lo, r_hi = (float(v) for v in rig.working_range())
+    above = valid & (truth > r_hi)
+    below = valid & (truth < r_lo)
+    outside = int(np.count_nonzero(above | below))
+    in_range = (valid & ~above & ~below) if outside else None
     metrics: dict[str, ImageComparison] = {}
     scaled: dict[str, np.ndarray] = {}
     for m, img in images.items():
-        c = compare_images(img, truth, mask=valid)
+        c = compare_images(img, truth, mask=valid, in_range=in_range)
         metrics[m] = c
         # a saturated pixel (the largest float32) times a scale > 1 would overflow
         with np.errstate(over="ignore"):
@@ -267,7 +280,10 @@ def evaluate_scene(
         "width": width, "height": height, "region": [y0, y1, x0, x1], "scale": s,
         "auto_exposure": scale is None, "target_log_average_lux": target if scale is None
         else None, "log_average_lux": log_average(inside), "max_lux": l_max,
-        "p0.1_lux": l_min, "span_stops": span,
+        "p0.1_lux": l_min, "span_stops": span, "rig_range_lux": [r_lo, r_hi],
+        "above_range_fraction": float(np.count_nonzero(above)) / n_valid,
+        "below_range_fraction": float(np.count_nonzero(below)) / n_valid,
+        "max_over_range": l_max / r_hi,
         "sensor": sensor.name, "rig": rig.to_metadata(), "n_cycles": n_cycles, "k": k,
         "n_events": n_events, "ml_dead_pixels_filled": filled,
         "ml_few_event_pixels": few,

@@ -631,7 +631,9 @@ def ssim_tonemapped(image: npt.ArrayLike, truth: npt.ArrayLike, *,
 
 @dataclass(frozen=True)
 class ImageComparison:
-    """An image against the true radiance (after one global scale)."""
+    """An image against the true radiance (after one global scale). The ``*_in_range``
+    figures are the same over the pixels a capture system can measure (NaN unless asked
+    for: :func:`compare_images`'s ``in_range``)."""
 
     scale: float
     log_rmse_stops: float
@@ -639,6 +641,8 @@ class ImageComparison:
     pu21_psnr_db: float
     ssim: float
     zero_fraction: float
+    log_rmse_in_range_stops: float = math.nan
+    pu21_psnr_in_range_db: float = math.nan
 
     def to_dict(self) -> dict[str, float | None]:
         return {k: (None if not math.isfinite(v) else float(v))
@@ -647,12 +651,16 @@ class ImageComparison:
 
 def compare_images(image: npt.ArrayLike, truth: npt.ArrayLike, *,
                    mask: npt.ArrayLike | None = None,
-                   display_peak_cdm2: float = PU21_DISPLAY_PEAK_CDM2) -> ImageComparison:
+                   display_peak_cdm2: float = PU21_DISPLAY_PEAK_CDM2,
+                   in_range: npt.ArrayLike | None = None) -> ImageComparison:
     """Every full-image metric of ``image`` against ``truth`` (linear radiance).
 
     The image is first multiplied by :func:`fit_scale`. For PU21 both are put on an HDR
     display by the same factor: the truth's maximum (over ``mask``) to
     ``display_peak_cdm2``. ``zero_fraction``: valid pixels the image leaves at 0 or below.
+    ``in_range``: the pixels the capture could measure (a rig's working range, say); the
+    log RMSE and PU21-PSNR over those of the valid ones as well, with the same scale and
+    display (beside the whole image's figures, which still count every pixel).
     """
     img = np.asarray(image, dtype=np.float64)
     t = np.asarray(truth, dtype=np.float64)
@@ -664,6 +672,12 @@ def compare_images(image: npt.ArrayLike, truth: npt.ArrayLike, *,
     s = fit_scale(img, t, mask=mask)
     scaled = img * s
     k = display_peak_cdm2 / float(t[ok].max())
+    rmse_in = pu21_in = math.nan
+    if in_range is not None:
+        inside = ok & np.asarray(in_range, bool)
+        if inside.any():
+            rmse_in = log_rmse(scaled, t, mask=inside)
+            pu21_in = pu21_psnr(scaled * k, t * k, mask=inside)
     return ImageComparison(
         scale=s,
         log_rmse_stops=log_rmse(scaled, t, mask=ok),
@@ -671,4 +685,6 @@ def compare_images(image: npt.ArrayLike, truth: npt.ArrayLike, *,
         pu21_psnr_db=pu21_psnr(scaled * k, t * k, mask=ok),
         ssim=ssim_tonemapped(scaled, t, mask=ok),
         zero_fraction=float(np.mean(img[ok] <= 0)),
+        log_rmse_in_range_stops=rmse_in,
+        pu21_psnr_in_range_db=pu21_in,
     )

@@ -31,6 +31,19 @@ code{background:#f4f4f4;padding:1px 4px}
 """
 
 
+def range_note(md: dict[str, Any]) -> str | None:
+    """The line that says how much of a scene lies beyond the rig's working range at its
+    exposure (None when nothing does)."""
+    above = md.get("above_range_fraction") or 0.0
+    below = md.get("below_range_fraction") or 0.0
+    if not (above or below):
+        return None
+    lo, hi = md["rig_range_lux"]
+    return (f"{100 * above:.3g} % of the scene's pixels lie above the rig's range ({lo:.3g} "
+            f"to {hi:.3g} lux; its brightest {md['max_over_range']:.3g}x the top) and "
+            f"{100 * below:.3g} % below; 'in range': the same figures over the rest")
+
+
 def _fmt(v: Any, nd: int = 2) -> str:
     if v is None:
         return "-"
@@ -207,17 +220,24 @@ def render_report(summary: dict[str, Any], figures: dict[str, str]) -> str:
             "frames' times (each at least 1/155 s) for the frame camera.</p>")
         for sc in scenes:
             md = sc["metadata"]
+            note = range_note(md)
             parts.append(f"<h3>{html.escape(sc['name'])}</h3><p class='note'>scale "
                          f"{md['scale']:.4g} to lux, span {md['span_stops']:.1f} stops, "
                          f"log-average {md['log_average_lux']:.3g} lux, max "
-                         f"{md['max_lux']:.3g} lux, sensor {html.escape(md['sensor'])}</p>")
+                         f"{md['max_lux']:.3g} lux, sensor {html.escape(md['sensor'])}"
+                         + (f". {html.escape(note)}" if note else "") + "</p>")
             head = ["method", "capture (ms)", "log RMSE (stops)", "rel. error",
                     "PU21-PSNR (dB)", "SSIM"]
+            if note:
+                head += ["in range: log RMSE", "in range: PU21"]
             rows = []
             for m, v in sc["methods"].items():
-                rows.append([m, _fmt(1000 * v["capture_s"], 1), _fmt(v["log_rmse_stops"], 3),
-                             _fmt(v["rel_error"], 3), _fmt(v["pu21_psnr_db"]),
-                             _fmt(v["ssim"], 3)])
+                row = [m, _fmt(1000 * v["capture_s"], 1), _fmt(v["log_rmse_stops"], 3),
+                       _fmt(v["rel_error"], 3), _fmt(v["pu21_psnr_db"]), _fmt(v["ssim"], 3)]
+                if note:
+                    row += [_fmt(v.get("log_rmse_in_range_stops"), 3),
+                            _fmt(v.get("pu21_psnr_in_range_db"))]
+                rows.append(row)
             parts.append(_table(head, rows))
             if f"scene/{sc['name']}" in figures:
                 parts.append(_img(figures[f"scene/{sc['name']}"], sc["name"]))

@@ -20,6 +20,7 @@ from rich.table import Table
 
 from asynhdr.cli._app import app
 from asynhdr.cli.core import console, err_console, fail, progress_bar
+from asynhdr.report import range_note
 
 PRESET_SIZES: dict[str, tuple[int, int]] = {
     "ideal": (640, 480),
@@ -136,15 +137,24 @@ def _run_scenes(files: list[Path], out: Path, *, width: int, height: int, preset
 
 def _print_scenes(summaries: list[dict[str, Any]]) -> None:
     for sc in summaries:
+        md = sc["metadata"]
+        note = range_note(md)
         t = Table(title=f"{sc['name']}: against the scene (one global scale per image); "
-                  f"span {sc['metadata']['span_stops']:.1f} stops, scale "
-                  f"{sc['metadata']['scale']:.4g}")
-        for h in ("method", "capture (ms)", "log RMSE (stops)", "rel. error",
-                  "PU21-PSNR (dB)", "SSIM"):
+                  f"span {md['span_stops']:.1f} stops, scale {md['scale']:.4g}",
+                  caption=note)
+        heads = ["method", "capture (ms)", "log RMSE (stops)", "rel. error",
+                 "PU21-PSNR (dB)", "SSIM"]
+        if note:
+            heads += ["in range: log RMSE", "in range: PU21"]
+        for h in heads:
             t.add_column(h, justify="right" if h != "method" else "left")
         for m, v in sc["methods"].items():
-            t.add_row(m, _fmt(1000 * v["capture_s"], 1), _fmt(v["log_rmse_stops"], 3),
-                      _fmt(v["rel_error"], 3), _fmt(v["pu21_psnr_db"]), _fmt(v["ssim"], 3))
+            row = [m, _fmt(1000 * v["capture_s"], 1), _fmt(v["log_rmse_stops"], 3),
+                   _fmt(v["rel_error"], 3), _fmt(v["pu21_psnr_db"]), _fmt(v["ssim"], 3)]
+            if note:
+                row += [_fmt(v.get("log_rmse_in_range_stops"), 3),
+                        _fmt(v.get("pu21_psnr_in_range_db"))]
+            t.add_row(*row)
         console.print(t)
 
 
