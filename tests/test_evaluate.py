@@ -20,6 +20,7 @@ from asynhdr.evaluate import (
     evaluate_scene,
     rig_mid_radiance,
 )
+from asynhdr.report import render_report
 from asynhdr.rig import Rig
 from asynhdr.scene import exposure_scale, from_radiance_map, log_average
 
@@ -80,6 +81,9 @@ def test_evaluate_scene_small() -> None:
         assert math.isfinite(c.pu21_psnr_in_range_db)
     # the saturated ends cost the paper's inversion, not the ten exposures
     assert ev.metrics["invert"].log_rmse_in_range_stops < ev.metrics["invert"].log_rmse_stops
+    # and the report says so beside the figures
+    page = render_report({"scenes": [ev.summary()]}, {})
+    assert "pixels lie above the rig" in page and "in range: PU21" in page
 
 
 def test_evaluate_cli_on_a_real_portrait_scene(data_dir: Path, manifest: dict[str, Any],
