@@ -99,6 +99,11 @@ def test_evaluate_cli_on_a_real_portrait_scene(data_dir: Path, manifest: dict[st
     assert (y1 - y0, x1 - x0) == (120, round(644 * 120 / 874))
     assert sc["metadata"]["auto_exposure"] and sc["metadata"]["scale"] > 100
     assert (tmp_path / "scenes" / "Desk.png").is_file()
+    assert (tmp_path / "scenes" / "Desk_error.png").is_file()
+    # the paper's rig spans 60 dB, Desk 31 stops: some of it lies beyond the range
+    md = sc["metadata"]
+    assert md["above_range_fraction"] + md["below_range_fraction"] > 0
+    assert md["rig_range_lux"] == pytest.approx(list(Rig().working_range()))
     # --scale wins over the automatic exposure
     r = runner.invoke(app, ["evaluate", str(data_dir / "hdr" / "scenes" / "Desk.exr"),
                             "--out", str(tmp_path / "s"), "--width", "160", "--height", "120",

@@ -20,6 +20,7 @@ if TYPE_CHECKING:
 __all__ = [
     "HOLE_RGB",
     "plot_chart_response",
+    "plot_error_maps",
     "plot_input_snr",
     "plot_k_sweep",
     "plot_linear_run",
@@ -244,6 +245,62 @@ def plot_k_sweep(sweeps: dict[str, list[dict[str, Any]]], path: str | os.PathLik
 
 HOLE_RGB = (255, 0, 255)
 """Colour of the pixels an image leaves without a value in :func:`plot_mosaic`."""
+
+
+def plot_error_maps(
+    images: Sequence[np.ndarray],
+    titles: Sequence[str],
+    truth: np.ndarray,
+    path: str | os.PathLike[str],
+    *,
+    columns: int = 4,
+    limit_stops: float = 1.0,
+    outside: np.ndarray | None = None,
+) -> Path:
+    """Each image's error against ``truth`` per pixel, ``log2(image / truth)`` in stops,
+    on one diverging scale clipped at ``+-limit_stops`` (blue: too dark, red: too
+    bright), with one colour bar. Pixels an image leaves without a value (NaN, 0 or
+    below) are drawn in :data:`HOLE_RGB`, those without truth (0) in grey; ``outside``
+    (the pixels the capture cannot measure, a rig's range) is outlined in black."""
+    from matplotlib import colors
+
+    plt = _pyplot()
+    n = len(images)
+    columns = min(columns, n)
+    rows = (n + columns - 1) // columns
+    h, w = truth.shape
+    fig, axes = plt.subplots(rows, columns, squeeze=False,
+                             figsize=(3.2 * columns, 3.2 * rows * h / w + 0.6 * rows))
+    flat = axes.ravel()
+    for ax in flat:
+        ax.axis("off")
+    cmap = plt.get_cmap("RdBu_r")
+    norm = colors.Normalize(-limit_stops, limit_stops)
+    t = np.asarray(truth, dtype=np.float64)
+    any_hole = False
+    for ax, img, title in zip(flat, images, titles, strict=False):
+        a = np.asarray(img, dtype=np.float64)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            err = np.log2(a / t)
+            holes = ~(a > 0) & (t > 0)
+        rgb = cmap(norm(np.clip(np.nan_to_num(err, nan=0.0), -limit_stops, limit_stops)))[..., :3]
+        rgb[~(t > 0)] = 0.6
+        rgb[holes] = np.asarray(HOLE_RGB) / 255.0
+        any_hole = any_hole or bool(holes.any())
+        ax.imshow(rgb, interpolation="nearest")
+        if outside is not None and outside.any():
+            ax.contour(outside.astype(float), levels=[0.5], colors="k", linewidths=0.6)
+        ax.set_title(title, fontsize=8)
+    fig.colorbar(plt.cm.ScalarMappable(norm=norm, cmap=cmap), ax=list(flat), shrink=0.6,
+                 label="log2(image / truth), stops")
+    notes = []
+    if any_hole:
+        notes.append("magenta: pixels the method leaves without a value")
+    if outside is not None and outside.any():
+        notes.append("outlined: beyond the rig's range")
+    if notes:
+        fig.text(0.5, 0.005, "; ".join(notes), ha="center", va="bottom", fontsize=8)
+    return _save(fig, path)
 
 
 def plot_mosaic(

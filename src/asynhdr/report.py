@@ -241,6 +241,9 @@ def render_report(summary: dict[str, Any], figures: dict[str, str]) -> str:
             parts.append(_table(head, rows))
             if f"scene/{sc['name']}" in figures:
                 parts.append(_img(figures[f"scene/{sc['name']}"], sc["name"]))
+            if f"scene/{sc['name']}/error" in figures:
+                parts.append(_img(figures[f"scene/{sc['name']}/error"],
+                                  f"{sc['name']}: error per pixel"))
 
     # ------------------------------------------------------------------ settings
     parts.append("<h2>Settings</h2><pre style='font-size:0.8em;white-space:pre-wrap'>")

@@ -22,6 +22,9 @@ from asynhdr.cli._app import app
 from asynhdr.cli.core import console, err_console, fail, progress_bar
 from asynhdr.report import range_note
 
+ERROR_MAP_STOPS = 0.5
+"""The error maps' scale: +- this many stops (log2 of image over truth)."""
+
 PRESET_SIZES: dict[str, tuple[int, int]] = {
     "ideal": (640, 480),
     "v2e": (640, 480),
@@ -91,7 +94,7 @@ def _run_scenes(files: list[Path], out: Path, *, width: int, height: int, preset
     from asynhdr.distributed import map_ordered
     from asynhdr.evaluate import calibrate_for_scenes
     from asynhdr.io.images import write_image
-    from asynhdr.plots import plot_mosaic
+    from asynhdr.plots import plot_error_maps, plot_mosaic
 
     cmap = calibrate_for_scenes(width=width, height=height, sensor=preset,
                                 sensor_seed=sensor_seed, rig=rig)
@@ -126,6 +129,14 @@ def _run_scenes(files: list[Path], out: Path, *, width: int, height: int, preset
         plot_mosaic([p[1] for p in picks], [p[0] for p in picks], fig, columns=5,
                     reference=truth)
         figures[f"scene/{f.stem}"] = os.path.relpath(fig, out)
+        lo, hi = ev.metadata["rig_range_lux"]
+        err_fig = out / "scenes" / f"{f.stem}_error.png"
+        plot_error_maps([img[y0:y1, x0:x1] for img in ev.images.values()],
+                        [f"{m}: {ev.metrics[m].log_rmse_stops:.3f} stops"
+                         for m in ev.images], truth, err_fig, columns=5,
+                        limit_stops=ERROR_MAP_STOPS,
+                        outside=(truth > 0) & ((truth > hi) | (truth < lo)))
+        figures[f"scene/{f.stem}/error"] = os.path.relpath(err_fig, out)
         write_image(out / "scenes" / f"{f.stem}_truth.exr", ev.scene.radiance,
                     metadata={"unit": "lux", "scale": ev.metadata["scale"]})
         for m, img in ev.images.items():
