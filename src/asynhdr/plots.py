@@ -18,6 +18,7 @@ if TYPE_CHECKING:
     from asynhdr.experiments import ChartResult, MethodResult
 
 __all__ = [
+    "ERROR_MAP_STOPS",
     "HOLE_RGB",
     "plot_chart_response",
     "plot_error_maps",
@@ -247,6 +248,11 @@ HOLE_RGB = (255, 0, 255)
 """Colour of the pixels an image leaves without a value in :func:`plot_mosaic`."""
 
 
+ERROR_MAP_STOPS = 0.5
+"""The error maps' scale (:func:`plot_error_maps`): +- this many stops of
+``log2(image / truth)``."""
+
+
 def plot_error_maps(
     images: Sequence[np.ndarray],
     titles: Sequence[str],
@@ -254,7 +260,7 @@ def plot_error_maps(
     path: str | os.PathLike[str],
     *,
     columns: int = 4,
-    limit_stops: float = 1.0,
+    limit_stops: float = ERROR_MAP_STOPS,
     outside: np.ndarray | None = None,
 ) -> Path:
     """Each image's error against ``truth`` per pixel, ``log2(image / truth)`` in stops,

@@ -22,9 +22,6 @@ from asynhdr.cli._app import app
 from asynhdr.cli.core import console, err_console, fail, progress_bar
 from asynhdr.report import range_note
 
-ERROR_MAP_STOPS = 0.5
-"""The error maps' scale: +- this many stops (log2 of image over truth)."""
-
 PRESET_SIZES: dict[str, tuple[int, int]] = {
     "ideal": (640, 480),
     "v2e": (640, 480),
@@ -134,7 +131,6 @@ def _run_scenes(files: list[Path], out: Path, *, width: int, height: int, preset
         plot_error_maps([img[y0:y1, x0:x1] for img in ev.images.values()],
                         [f"{m}: {ev.metrics[m].log_rmse_stops:.3f} stops"
                          for m in ev.images], truth, err_fig, columns=5,
-                        limit_stops=ERROR_MAP_STOPS,
                         outside=(truth > 0) & ((truth > hi) | (truth < lo)))
         figures[f"scene/{f.stem}/error"] = os.path.relpath(err_fig, out)
         write_image(out / "scenes" / f"{f.stem}_truth.exr", ev.scene.radiance,
