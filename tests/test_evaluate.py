@@ -83,7 +83,7 @@ def test_evaluate_scene_small() -> None:
     assert ev.metrics["invert"].log_rmse_in_range_stops < ev.metrics["invert"].log_rmse_stops
     # and the report says so beside the figures
     page = render_report({"scenes": [ev.summary()]}, {})
-    assert "pixels lie above the rig" in page and "in range: PU21" in page
+    assert "lie above it" in page and "in range: PU21" in page
 
 
 def test_evaluate_cli_on_a_real_portrait_scene(data_dir: Path, manifest: dict[str, Any],

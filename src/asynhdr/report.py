@@ -39,9 +39,14 @@ def range_note(md: dict[str, Any]) -> str | None:
     if not (above or below):
         return None
     lo, hi = md["rig_range_lux"]
-    return (f"{100 * above:.3g} % of the scene's pixels lie above the rig's range ({lo:.3g} "
-            f"to {hi:.3g} lux; its brightest {md['max_over_range']:.3g}x the top) and "
-            f"{100 * below:.3g} % below; 'in range': the same figures over the rest")
+    parts = []
+    if above:
+        parts.append(f"{100 * above:.3g} % lie above it (the brightest at "
+                     f"{md['max_over_range']:.3g}x its top)")
+    if below:
+        parts.append(f"{100 * below:.3g} % {'' if above else 'lie '}below it")
+    return (f"The rig's range is {lo:.3g} to {hi:.3g} lux. Of the scene's pixels, "
+            f"{' and '.join(parts)}. 'In range': the same figures over the rest.")
 
 
 def _fmt(v: Any, nd: int = 2) -> str:
