@@ -202,8 +202,10 @@ def run_preset(preset: str, *, width: int, height: int, seed: int = 0,
         curves = {name: {"snr_db": res[name]["snr_db"], "bias": res[name]["bias"],
                          "run": res[name]["run_index"]}
                   for name in ("ml", "ml + calibration", "ml fast + calibration")}
+        stated_snr = [-20 * math.log10(r["stated_ln"]) if r["stated_ln"] > 0 else np.nan
+                      for r in rows]
         plot_linear_run(lv, curves, out_dir / f"ml_run_{preset}.png", bound_snr_db=bound_snr,
-                        min_snr_db=MIN_SNR_DB, max_bias=MAX_BIAS,
+                        stated_snr_db=stated_snr, min_snr_db=MIN_SNR_DB, max_bias=MAX_BIAS,
                         title=f"ml on the {LEVELS}-level chart, {preset}, the CLI's rig")
     print(f"  {preset:9s} {'bound SNR (ml + cal.)':22s} run {by_bound['run_db']:6.1f} "
           f"dB over {by_bound['run_levels']:2d} levels {by_bound['run_lux']}, mean SNR "

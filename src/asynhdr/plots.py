@@ -160,6 +160,7 @@ def plot_chart_response(result: ChartResult, path: str | os.PathLike[str]) -> Pa
 
 def plot_linear_run(levels: Sequence[float], curves: dict[str, dict[str, Any]],
                     path: str | os.PathLike[str], *, bound_snr_db: Sequence[float] | None = None,
+                    stated_snr_db: Sequence[float] | None = None,
                     min_snr_db: float = 20.0, max_bias: float = 0.05,
                     title: str = "") -> Path:
     """Per-pixel SNR and bias per radiance level, the two lines a level must stay within to
@@ -167,7 +168,9 @@ def plot_linear_run(levels: Sequence[float], curves: dict[str, dict[str, Any]],
     markers inside it, hollow ones outside. ``curves[name]`` holds ``snr_db``, ``bias``
     (after the run's global scale) and ``run`` (the indices of its ends, or ``None``);
     ``bound_snr_db``: the SNR the model's Cramér-Rao bound allows, dashed, so a run whose
-    end sits on the line shows as one."""
+    end sits on the line shows as one; ``stated_snr_db``: the SNR an estimator's own
+    per-pixel deviations state (``-20 log10`` of their median), dotted: where it meets
+    the measured curve, the stated uncertainty is the real one."""
     plt = _pyplot()
     lv = np.asarray(levels, dtype=np.float64)
     fig, (ax_s, ax_b) = plt.subplots(2, 1, figsize=(8, 6.5), sharex=True,
@@ -175,6 +178,9 @@ def plot_linear_run(levels: Sequence[float], curves: dict[str, dict[str, Any]],
     if bound_snr_db is not None:
         ax_s.plot(lv, np.asarray(bound_snr_db, dtype=np.float64), "--", color="0.3", lw=1,
                   label="the bound's SNR")
+    if stated_snr_db is not None:
+        ax_s.plot(lv, np.asarray(stated_snr_db, dtype=np.float64), ":", color="0.1", lw=1.2,
+                  label="the SNR stated (median deviation)")
     for name, c in curves.items():
         snr = np.clip(np.asarray(c["snr_db"], dtype=np.float64), -20.0, 90.0)
         bias = np.clip(100.0 * np.abs(np.asarray(c["bias"], dtype=np.float64)), 1e-3, 1e4)
