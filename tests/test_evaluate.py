@@ -74,6 +74,7 @@ def test_evaluate_scene_small() -> None:
     assert md["below_range_fraction"] == pytest.approx(np.mean(t < lo))
     assert md["above_range_fraction"] > 0.02 and md["below_range_fraction"] > 0.02
     inside = ev.mask & (truth >= lo) & (truth <= hi)
+    assert np.array_equal(ev.beyond_range, ev.mask & (truth > 0) & ~inside)
     for name in ("mef-10", "invert"):
         c = ev.metrics[name]
         err = np.log2(ev.images[name][inside].astype(np.float64) / truth[inside])

@@ -102,6 +102,8 @@ class SceneEvaluation:
     metrics: dict[str, ImageComparison]
     capture_s: dict[str, float]
     metadata: dict[str, Any] = field(default_factory=dict)
+    beyond_range: np.ndarray | None = None
+    """The scene's pixels (in ``mask``) outside the rig's working range at this exposure."""
 
     def summary(self) -> dict[str, Any]:
         return {"name": self.name, "metadata": self.metadata,
@@ -292,4 +294,4 @@ def evaluate_scene(
         "auto_exposure_s": t_auto, "seed": seed, "sensor_seed": sensor_seed,
     }
     return SceneEvaluation(name=name, scene=scene, mask=mask, images=scaled, metrics=metrics,
-                           capture_s=capture_s, metadata=meta)
+                           capture_s=capture_s, metadata=meta, beyond_range=above | below)

@@ -281,8 +281,9 @@ def plot_error_maps(
     columns = min(columns, n)
     rows = (n + columns - 1) // columns
     h, w = truth.shape
-    fig, axes = plt.subplots(rows, columns, squeeze=False,
-                             figsize=(3.2 * columns, 3.2 * rows * h / w + 0.6 * rows))
+    # the panels' own aspect, room for a title each and the colour bar beside them
+    fig, axes = plt.subplots(rows, columns, squeeze=False, layout="constrained",
+                             figsize=(3.2 * columns + 1.0, (3.2 * h / w + 0.3) * rows + 0.3))
     flat = axes.ravel()
     for ax in flat:
         ax.axis("off")
@@ -303,7 +304,7 @@ def plot_error_maps(
         if outside is not None and outside.any():
             ax.contour(outside.astype(float), levels=[0.5], colors="k", linewidths=0.6)
         ax.set_title(title, fontsize=8)
-    fig.colorbar(plt.cm.ScalarMappable(norm=norm, cmap=cmap), ax=list(flat), shrink=0.6,
+    fig.colorbar(plt.cm.ScalarMappable(norm=norm, cmap=cmap), ax=axes, shrink=0.8,
                  label="log2(image / truth), stops")
     notes = []
     if any_hole:
@@ -311,7 +312,7 @@ def plot_error_maps(
     if outside is not None and outside.any():
         notes.append("outlined: beyond the rig's range")
     if notes:
-        fig.text(0.5, 0.005, "; ".join(notes), ha="center", va="bottom", fontsize=8)
+        fig.supxlabel("; ".join(notes), fontsize=8)
     return _save(fig, path)
 
 
@@ -335,8 +336,8 @@ def plot_mosaic(
     columns = min(columns, n)
     rows = (n + columns - 1) // columns
     h, w = images[0].shape
-    fig, axes = plt.subplots(rows, columns,
-                             figsize=(3.2 * columns, 3.2 * rows * h / w + 0.45 * rows))
+    fig, axes = plt.subplots(rows, columns, layout="constrained",
+                             figsize=(3.2 * columns, (3.2 * h / w + 0.3) * rows + 0.3))
     axes = np.atleast_1d(axes).ravel()
     for ax in axes:
         ax.axis("off")
@@ -361,6 +362,5 @@ def plot_mosaic(
         ax.imshow(rgb)
         ax.set_title(title, fontsize=8)
     if any_hole:
-        fig.text(0.5, 0.005, "magenta: pixels the method leaves without a value",
-                 ha="center", va="bottom", fontsize=8)
+        fig.supxlabel("magenta: pixels the method leaves without a value", fontsize=8)
     return _save(fig, path)

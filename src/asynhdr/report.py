@@ -49,17 +49,36 @@ def range_note(md: dict[str, Any]) -> str | None:
             f"{' and '.join(parts)}. 'In range': the same figures over the rest.")
 
 
-def _fmt(v: Any, nd: int = 2) -> str:
-    if v is None:
+def scene_table(sc: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
+    """One evaluated scene's figures as text, ``(head, rows)``, a row per method: the
+    report's table and the command line's. With a share of the scene beyond the rig's
+    range (:func:`range_note`), the figures over the rest as two more columns."""
+    in_range = range_note(sc["metadata"]) is not None
+    head = ["method", "capture (ms)", "log RMSE (stops)", "rel. error", "PU21-PSNR (dB)",
+            "SSIM"]
+    if in_range:
+        head += ["in range: log RMSE", "in range: PU21"]
+    rows = []
+    for m, v in sc["methods"].items():
+        row = [m, _num(1000 * v["capture_s"], 1), _num(v["log_rmse_stops"], 3),
+               _num(v["rel_error"], 3), _num(v["pu21_psnr_db"]), _num(v["ssim"], 3)]
+        if in_range:
+            row += [_num(v.get("log_rmse_in_range_stops"), 3),
+                    _num(v.get("pu21_psnr_in_range_db"))]
+        rows.append(row)
+    return head, rows
+
+
+def _num(v: float | None, nd: int = 2) -> str:
+    """A figure as text: ``-`` for none (None or NaN), ``inf``, else ``nd`` decimals."""
+    if v is None or math.isnan(v):
         return "-"
-    if isinstance(v, str):
-        return html.escape(v)
-    if isinstance(v, float):
-        if math.isinf(v):
-            return "inf"
-        if math.isnan(v):
-            return "-"
-        return f"{v:.{nd}f}"
+    return "inf" if math.isinf(v) else f"{v:.{nd}f}"
+
+
+def _fmt(v: Any, nd: int = 2) -> str:
+    if v is None or isinstance(v, float):
+        return _num(v, nd)
     return html.escape(str(v))
 
 
@@ -231,19 +250,8 @@ def render_report(summary: dict[str, Any], figures: dict[str, str]) -> str:
                          f"log-average {md['log_average_lux']:.3g} lux, max "
                          f"{md['max_lux']:.3g} lux, sensor {html.escape(md['sensor'])}"
                          + (f". {html.escape(note)}" if note else "") + "</p>")
-            head = ["method", "capture (ms)", "log RMSE (stops)", "rel. error",
-                    "PU21-PSNR (dB)", "SSIM"]
-            if note:
-                head += ["in range: log RMSE", "in range: PU21"]
-            rows = []
-            for m, v in sc["methods"].items():
-                row = [m, _fmt(1000 * v["capture_s"], 1), _fmt(v["log_rmse_stops"], 3),
-                       _fmt(v["rel_error"], 3), _fmt(v["pu21_psnr_db"]), _fmt(v["ssim"], 3)]
-                if note:
-                    row += [_fmt(v.get("log_rmse_in_range_stops"), 3),
-                            _fmt(v.get("pu21_psnr_in_range_db"))]
-                rows.append(row)
-            parts.append(_table(head, rows))
+            head, rows = scene_table(sc)
+            parts.append(_table(head, [[html.escape(r[0]), *r[1:]] for r in rows]))
             if f"scene/{sc['name']}" in figures:
                 parts.append(_img(figures[f"scene/{sc['name']}"], sc["name"]))
             if f"scene/{sc['name']}/error" in figures:

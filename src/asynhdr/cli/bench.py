@@ -20,7 +20,7 @@ from rich.table import Table
 
 from asynhdr.cli._app import app
 from asynhdr.cli.core import console, err_console, fail, progress_bar
-from asynhdr.report import range_note
+from asynhdr.report import range_note, scene_table
 
 PRESET_SIZES: dict[str, tuple[int, int]] = {
     "ideal": (640, 480),
@@ -44,12 +44,6 @@ def _scene_files(paths: list[Path] | None) -> list[Path]:
         if d.is_dir():
             return sorted(p for p in d.iterdir() if p.suffix.lower() in (".exr", ".hdr"))
     return []
-
-
-def _fmt(v: float | None, nd: int = 2) -> str:
-    if v is None:
-        return "-"
-    return "inf" if math.isinf(v) else f"{v:.{nd}f}"
 
 
 def _client(stack: contextlib.ExitStack, scheduler: str | None, workers: int | None) -> Any:
@@ -126,12 +120,12 @@ def _run_scenes(files: list[Path], out: Path, *, width: int, height: int, preset
         plot_mosaic([p[1] for p in picks], [p[0] for p in picks], fig, columns=5,
                     reference=truth)
         figures[f"scene/{f.stem}"] = os.path.relpath(fig, out)
-        lo, hi = ev.metadata["rig_range_lux"]
         err_fig = out / "scenes" / f"{f.stem}_error.png"
         plot_error_maps([img[y0:y1, x0:x1] for img in ev.images.values()],
                         [f"{m}: {ev.metrics[m].log_rmse_stops:.3f} stops"
                          for m in ev.images], truth, err_fig, columns=5,
-                        outside=(truth > 0) & ((truth > hi) | (truth < lo)))
+                        outside=None if ev.beyond_range is None
+                        else ev.beyond_range[y0:y1, x0:x1])
         figures[f"scene/{f.stem}/error"] = os.path.relpath(err_fig, out)
         write_image(out / "scenes" / f"{f.stem}_truth.exr", ev.scene.radiance,
                     metadata={"unit": "lux", "scale": ev.metadata["scale"]})
@@ -149,19 +143,11 @@ def _print_scenes(summaries: list[dict[str, Any]]) -> None:
         t = Table(title=f"{sc['name']}: against the scene (one global scale per image); "
                   f"span {md['span_stops']:.1f} stops, scale {md['scale']:.4g}",
                   caption=note)
-        heads = ["method", "capture (ms)", "log RMSE (stops)", "rel. error",
-                 "PU21-PSNR (dB)", "SSIM"]
-        if note:
-            heads += ["in range: log RMSE", "in range: PU21"]
-        for h in heads:
+        head, rows = scene_table(sc)
+        for h in head:
             t.add_column(h, justify="right" if h != "method" else "left")
-        for m, v in sc["methods"].items():
-            row = [m, _fmt(1000 * v["capture_s"], 1), _fmt(v["log_rmse_stops"], 3),
-                   _fmt(v["rel_error"], 3), _fmt(v["pu21_psnr_db"]), _fmt(v["ssim"], 3)]
-            if note:
-                row += [_fmt(v.get("log_rmse_in_range_stops"), 3),
-                        _fmt(v.get("pu21_psnr_in_range_db"))]
-            t.add_row(*row)
+        for r in rows:
+            t.add_row(escape(r[0]), *r[1:])
         console.print(t)
 
 
