@@ -2923,11 +2923,20 @@ class LearnedThresholds:
     sensor's thresholds sit where its biases put them, not at a datasheet's nominal
     value.
 
-    ``cycles``: how many cycles it has learned from."""
+    ``cycles``: how many cycles it has learned from.
+
+    The first cycle is fitted from the nominal thresholds alone: :meth:`first_cycle_priors`
+    gives it what the cycle after it taught (the second update's likelihood, its
+    posterior divided by its prior), so that :func:`reconstruct_ml` fits it again no worse
+    informed than the second, and no cycle's events counted twice."""
 
     def __init__(self) -> None:
         self.cycles = 0
         self._state: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._initial: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+        # the latest update's likelihood per threshold: (taught, c / sd^2 - m / sd0^2,
+        # 1 / sd^2 - 1 / sd0^2), the fit's posterior over the prior it had
+        self._taught: list[tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
         self._learned: list[np.ndarray] | None = None
         # the learned pixels that sample the population without selection (below)
         self._sample: list[np.ndarray] = []
@@ -2945,6 +2954,7 @@ class LearnedThresholds:
         """The priors for the next cycle (:func:`thresholds_prior`'s layout)."""
         if self._state is None:
             self._state = thresholds_prior(sensor, width=width, height=height)
+            self._initial = self._state
         if self._state[0].size != width * height:
             raise ValueError(f"LearnedThresholds: learned on {self._state[0].size} pixels, "
                              f"asked for {width}x{height}")
@@ -2965,6 +2975,7 @@ class LearnedThresholds:
         enough = np.asarray(res.n_events[cycle]).ravel() >= LEARN_MIN_EVENTS
         unselected = _unselected(res, cycle, enough)
         new = []
+        taught = []
         for k, (m, sd0, c, sd) in enumerate(((m_on, s_on, res.c_on, res.sd_on),
                                              (m_off, s_off, res.c_off, res.sd_off))):
             c = np.asarray(c[cycle], dtype=np.float64).ravel()
@@ -2974,6 +2985,13 @@ class LearnedThresholds:
                       & (np.abs(c - m) <= LEARN_GATE * sd0))
             mean = np.where(ok, c, m)
             spread = np.where(ok, np.maximum(sd, LEARN_SD_FLOOR), sd0)
+            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+                # the fit's own posterior (not floored) over the prior it had; one no
+                # narrower than its prior taught nothing
+                prec = np.where(ok, sd ** -2.0 - sd0 ** -2.0, 0.0)
+                ok_t = ok & (prec > 0) & np.isfinite(prec)
+                taught.append((ok_t, np.where(ok_t, c * sd ** -2.0 - m * sd0 ** -2.0, 0.0),
+                               np.where(ok_t, prec, 0.0)))
             learned = self._learned[k] | ok
             self._learned[k] = learned
             self._sample[k] |= ok & unselected
@@ -2981,7 +2999,33 @@ class LearnedThresholds:
                 mean, spread = _population_prior(mean, spread, learned, self._sample[k])
             new.append((mean, spread))
         self._state = (new[0][0], new[1][0], new[0][1], new[1][1])
+        self._taught = taught
         self.cycles += 1
+
+    def first_cycle_priors(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The first cycle's priors (the nominal thresholds) with what the latest update's
+        cycle taught, in the Gaussian approximation (precisions add; spreads at least
+        :data:`LEARN_SD_FLOOR`); the pixels it taught nothing keep the current prior of
+        the pixels that never learned (the nominal thresholds, or the population's: their
+        own first cycle's fit is not in it). After the second update these are the priors
+        that fit the first cycle again with the second's information and not its own
+        (:func:`reconstruct_ml`)."""
+        if self._initial is None or self._taught is None or self._learned is None \
+                or self._state is None:
+            raise ValueError("LearnedThresholds.first_cycle_priors: nothing learned yet")
+        out = []
+        for k in range(2):
+            m0, s0 = self._initial[k], self._initial[2 + k]
+            ok, num, prec = self._taught[k]
+            p = s0 ** -2.0 + prec
+            mean = np.where(ok, (m0 * s0 ** -2.0 + num) / p, m0)
+            spread = np.where(ok, np.maximum(p ** -0.5, LEARN_SD_FLOOR), s0)
+            if np.count_nonzero(self._sample[k]) >= LEARN_POPULATION_MIN:
+                mu, mad = _population(self._state[k], self._sample[k])
+                mean = np.where(ok, mean, mu)
+                spread = np.where(ok, spread, np.maximum(s0, mad))
+            out.append((mean, spread))
+        return out[0][0], out[1][0], out[0][1], out[1][1]
 
 
 def _unselected(res: MlResult, cycle: int, enough: np.ndarray) -> np.ndarray:
@@ -3012,9 +3056,15 @@ def _population_prior(mean: np.ndarray, spread: np.ndarray, learned: np.ndarray,
     sensor's mismatch) nor than the sample's (1.4826 median absolute deviation): learned
     values are posterior means, drawn towards the prior, so their spread understates the
     population's."""
-    mu = float(np.median(mean[sample]))
-    mad = 1.4826 * float(np.median(np.abs(mean[sample] - mu)))
+    mu, mad = _population(mean, sample)
     return np.where(learned, mean, mu), np.where(learned, spread, np.maximum(spread, mad))
+
+
+def _population(mean: np.ndarray, sample: np.ndarray) -> tuple[float, float]:
+    """The ``sample`` pixels' median of ``mean`` and their spread about it (1.4826 median
+    absolute deviation)."""
+    mu = float(np.median(mean[sample]))
+    return mu, 1.4826 * float(np.median(np.abs(mean[sample] - mu)))
 
 
 _PROGRESS_PARTS = 32
@@ -3449,22 +3499,33 @@ def reconstruct_ml(
     if learning:
         own = learner is None
         learner = LearnedThresholds() if learner is None else learner
+        # the first cycle fitted again once the second has taught its thresholds
+        # (LearnedThresholds.first_cycle_priors): where this call starts the learning
+        again = learner.cycles == 0 and len(starts) > 1
+        n_fits = len(starts) + again
         parts = []
         npx = w * h
+
+        def bar(k: int) -> Callable[[int, int], None] | None:
+            """The bar's callback for the ``k``-th fit of ``n_fits``."""
+            if progress is None:
+                return None
+            return lambda done, total: progress(stage, k * npx + done, n_fits * npx)
+
         for c, st in enumerate(starts.tolist()):
             # the last cycle's spreads serve only a learner that outlives this call
-            last = own and c == len(starts) - 1
-            step: Callable[[int, int], None] | None = None
-            if progress is not None:
-                def step(done: int, total: int, c: int = c) -> None:
-                    progress(stage, c * npx + done, len(starts) * npx)
+            last = own and c == len(starts) - 1 and not (again and c == 1)
             part = estimate(ev, starts_us=np.array([st]),
                             priors=learner.priors(sensor, width=w, height=h),
                             threshold_sd=not last, hold_sd=FAST_HOLD_SD,
-                            pixel_progress=step, **kw)
+                            pixel_progress=bar(c + (again and c > 1)), **kw)
             if part.sd_on is not None:
                 learner.update(part)
             parts.append(dataclasses.replace(part, sd_on=None, sd_off=None))
+            if again and c == 1:
+                parts[0] = estimate(ev, starts_us=starts[:1],
+                                    priors=learner.first_cycle_priors(),
+                                    hold_sd=FAST_HOLD_SD, pixel_progress=bar(2), **kw)
         res = MlResult.concatenate(parts)
     else:
         res = estimate(ev, starts_us=starts, priors=priors,

@@ -78,6 +78,7 @@ opens a file: :func:`reconstruct` works on a whole recording in memory,
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import logging
 import math
 from collections.abc import Callable, Iterator
@@ -91,7 +92,7 @@ from asynhdr.events import Recording, sort_events
 from asynhdr.rig import Rig
 from asynhdr.segment import Cycles, cycles_from_triggers, find_cycles
 from asynhdr.sensor.params import PRESETS, SensorParams
-from asynhdr.source import Progress, Source, as_source
+from asynhdr.source import Progress, Source, Window, as_source
 
 __all__ = [
     "DEFAULT_K",
@@ -865,25 +866,55 @@ class CycleImages:
         once = _OncePerMessage()  # what holds for every cycle is logged once
         logger.addFilter(once)
         params = self._params
-        if self.method.name == "ml" and "learner" not in (params.ml or {}):
+        ml = self.method.name == "ml"
+        if ml and "learner" not in (params.ml or {}):
             # what ml learns of the thresholds goes from one cycle to the next, as it does
             # within one call over the whole recording (asynhdr.ml.LearnedThresholds)
             from asynhdr.ml import LearnedThresholds
 
             params = dataclasses.replace(params, ml={**(params.ml or {}),
                                                      "learner": LearnedThresholds()})
+        held: list[Window] = []
         try:
             for win in self.source.windows(w.start_us, stops):
-                ev, _ = sort_events(win.events)
-                rec = Recording(events=ev, width=self.width, height=self.height,
-                                triggers=win.triggers, metadata=self.metadata)
-                one = CycleWindows(np.array([win.start_us]), w.window_us,
-                                   warmup=int(win.i < w.warmup))
-                yield win.i, win.start_us, self.method.function(rec, one, params)[0]
-                if self._progress is not None:
-                    self._progress("reconstruct", win.i + 1, len(self))
+                held.append(win)
+                if ml and win.i == 0 and len(self) > 1:
+                    # ml fits the first cycle again once the second has taught the
+                    # thresholds (asynhdr.ml.reconstruct_ml): the two go in one call
+                    continue
+                yield from self._images(held, params)
+                held = []
+            yield from self._images(held, params)
         finally:
             logger.removeFilter(once)
+
+    def _images(self, wins: list[Window], params: _Params
+                ) -> Iterator[tuple[int, int, np.ndarray]]:
+        """The images of consecutive windows ``wins``, from one call of the method."""
+        if not wins:
+            return
+        w = self.windows
+        ev, trig = wins[0].events, wins[0].triggers
+        for a, b in itertools.pairwise(wins):
+            # windows may overlap: what the one before holds is not added twice
+            ev = np.concatenate([ev, b.events[b.events["t"] >= a.stop_us]])
+            trig = np.concatenate([trig, b.triggers[b.triggers["t"] >= a.stop_us]])
+        ev, _ = sort_events(ev)
+        rec = Recording(events=ev, width=self.width, height=self.height, triggers=trig,
+                        metadata=self.metadata)
+        cyc = CycleWindows(np.array([win.start_us for win in wins]), w.window_us,
+                           warmup=sum(int(win.i < w.warmup) for win in wins))
+        imgs = self.method.function(rec, cyc, params)
+        sink = (params.ml or {}).get("out")
+        whole = dict(sink) if sink is not None and len(wins) > 1 else None
+        for k, win in enumerate(wins):
+            if whole is not None and sink is not None:
+                # the out dict holds the yielded cycle's outputs, as with one call each
+                sink.update({key: v[k:k + 1] if isinstance(v, np.ndarray) else v
+                             for key, v in whole.items()})
+            yield win.i, win.start_us, imgs[k]
+            if self._progress is not None:
+                self._progress("reconstruct", win.i + 1, len(self))
 
 
 class _OncePerMessage(logging.Filter):
