@@ -3455,7 +3455,9 @@ def reconstruct_ml(
     cycle's pixels start from another state, which the fit's start offset takes up, so it
     teaches too); ``learner`` carries what was learned from one call
     to the next (a recording reconstructed cycle by cycle), else each call starts from
-    the nominal thresholds.
+    the nominal thresholds. A call that starts the learning with two cycles or more fits
+    its first cycle again once the second has taught the thresholds
+    (:meth:`LearnedThresholds.first_cycle_priors`; not with ``fast``).
     ``fast``: the fast fit (:func:`estimate`; docs/ml.md): ``ln L`` alone with the
     thresholds held: calibrated ones (``thresholds`` or ``cmap``), or, while learning,
     each pixel's once learned to :data:`FAST_HOLD_SD` (until then the full fit, which
@@ -3500,8 +3502,9 @@ def reconstruct_ml(
         own = learner is None
         learner = LearnedThresholds() if learner is None else learner
         # the first cycle fitted again once the second has taught its thresholds
-        # (LearnedThresholds.first_cycle_priors): where this call starts the learning
-        again = learner.cycles == 0 and len(starts) > 1
+        # (LearnedThresholds.first_cycle_priors): where this call starts the learning, and
+        # not with the fast fit, whose held pixels learn nothing in the second cycle
+        again = learner.cycles == 0 and len(starts) > 1 and not fast
         n_fits = len(starts) + again
         parts = []
         npx = w * h

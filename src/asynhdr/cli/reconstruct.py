@@ -233,11 +233,13 @@ def reconstruct(
                           f"from its own events, starting from the nominal "
                           f"{sensor.threshold_on:.3g} / {sensor.threshold_off:.3g} (mismatch "
                           f"{sensor.threshold_sigma:g}) and learned from cycle to cycle "
-                          "(later cycles are the better for it); thresholds calibrated from "
+                          "(the first cycle fitted again with what the second taught; later "
+                          "cycles are the better for it); thresholds calibrated from "
                           "flat fields (asynhdr calibrate-thresholds) widen the range "
                           "(docs/ml.md)"
                           + ("; --fast fitted in full the pixels whose thresholds were not "
-                             "yet learned (all of them in the first cycle)" if fast else ""))
+                             "yet learned (all of them in the first cycle's first fit)"
+                             if fast else ""))
 
 
 @app.command()
