@@ -134,7 +134,8 @@ def reconstruct_distributed(client: Any, path: str | os.PathLike[str], windows: 
     ``reconstruct_cycles``; ``cmap`` a c-map file. ``ml`` without calibrated thresholds
     learns them from cycle to cycle within each run (:class:`asynhdr.ml.LearnedThresholds`),
     so its images differ from the serial run's, where every cycle learns from all before
-    it (the first cycle of each run starts from the nominal thresholds). As in the serial
+    it (the first cycle of each run starts from the nominal thresholds, and is fitted
+    again from what the run's second cycle taught). As in the serial
     run, an ``"out"`` dict
     in ``ml_options`` holds the yielded cycle's uncertainty and flags when it is yielded."""
     n = windows.n_cycles

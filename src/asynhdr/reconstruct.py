@@ -833,7 +833,8 @@ def reconstruct(
 
 
 class CycleImages:
-    """A recording reconstructed cycle by cycle, holding one cycle's events at a time.
+    """A recording reconstructed cycle by cycle, holding one cycle's events at a time (two
+    for ``ml``'s first two cycles, fitted together: :func:`asynhdr.ml.reconstruct_ml`).
 
     Made by :func:`reconstruct_cycles`. ``windows``, ``metadata`` and the geometry are
     known before the first image; iterating yields ``(cycle, start_us, image)`` with the
