@@ -229,17 +229,20 @@ def reconstruct(
 
         sensor = mlo.sensor or sensor_of(plan.metadata)
         if sensor.threshold_sigma > 0:
+            learned = ""
+            if len(plan) > 1:
+                learned = (" and learned from cycle to cycle ("
+                           + ("" if fast else "the first cycle fitted again with what the "
+                              "second taught; ")
+                           + "later cycles are the better for it)")
             console.print(f"ml: no --calibration, so every pixel's thresholds were fitted "
                           f"from its own events, starting from the nominal "
                           f"{sensor.threshold_on:.3g} / {sensor.threshold_off:.3g} (mismatch "
-                          f"{sensor.threshold_sigma:g}) and learned from cycle to cycle "
-                          "(the first cycle fitted again with what the second taught; later "
-                          "cycles are the better for it); thresholds calibrated from "
+                          f"{sensor.threshold_sigma:g}){learned}; thresholds calibrated from "
                           "flat fields (asynhdr calibrate-thresholds) widen the range "
                           "(docs/ml.md)"
                           + ("; --fast fitted in full the pixels whose thresholds were not "
-                             "yet learned (all of them in the first cycle's first fit)"
-                             if fast else ""))
+                             "yet learned (all of them in the first cycle)" if fast else ""))
 
 
 @app.command()
