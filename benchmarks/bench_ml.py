@@ -164,8 +164,10 @@ def run_preset(preset: str, *, width: int, height: int, seed: int = 0,
                 opts = {**runs[name].get("ml_options", {}), "out": fl}
                 imgs = reconstruct(other, method="ml", ml_options=opts)
                 imgs = np.where(fl["flags"] == 0, imgs, np.nan)
-                for key, img in ((name, imgs[-1]), ("ml, first cycle", imgs[0]))[
-                        :2 if name == "ml" else 1]:
+                measured = [(name, imgs[-1])]
+                if name == "ml":
+                    measured.append(("ml, first cycle", imgs[0]))
+                for key, img in measured:
                     f = chart_figures(img, scene)
                     spread[key].append(f["run_db"])
                     snr[key].append(f["run_mean_snr_db"])
