@@ -212,9 +212,11 @@ def run_preset(preset: str, *, width: int, height: int, seed: int = 0,
     by_bound = run_figures(lv, cal["means"], bound_snr)
     out["ml + calibration, bound's SNR"] = by_bound
     if out_dir is not None:
-        curves = {name: {"snr_db": res[name]["snr_db"], "bias": res[name]["bias"],
-                         "run": res[name]["run_index"]}
-                  for name in ("ml", "ml + calibration", "ml fast + calibration")}
+        curves = {("ml, last cycle" if name == "ml" else name):
+                  {"snr_db": res[name]["snr_db"], "bias": res[name]["bias"],
+                   "run": res[name]["run_index"]}
+                  for name in ("ml", "ml, first cycle", "ml + calibration",
+                               "ml fast + calibration")}
         stated_snr = [-20 * math.log10(r["stated_ln"]) if r["stated_ln"] > 0 else np.nan
                       for r in rows]
         plot_linear_run(lv, curves, out_dir / f"ml_run_{preset}.png", bound_snr_db=bound_snr,
