@@ -584,7 +584,8 @@ def test_few_events_state_the_spread_of_a_profile_with_two_optima() -> None:
     # first cycle, row 86, column 325), nominal thresholds: the likelihood's profile has
     # two optima of equal height 1.65 apart in ln L, each about 0.05 wide, between the
     # probe's distances; the fit sits in the one 1.7 below the truth, and its stated
-    # deviation covers the other (the curvature alone says 0.14)
+    # deviation covers the other (0.95 from the profile checked on a grid; the curvature
+    # alone says 0.14)
     rig = default_rig("imx636")
     t = [14199, 29252, 32347, 72526, 123133, 162191, 174242]
     ev = np.zeros(len(t), EVENT_DTYPE)

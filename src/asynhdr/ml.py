@@ -174,14 +174,16 @@ _SCAN_STEP = 0.2
 _PROBES = (0.15, 0.3, 0.5, 1.0, 1.5)
 """A pixel's fit is checked against the likelihood's profile these distances either side
 in ``ln L`` (:func:`_probe`)."""
-_DENSE_PROBE_EVENTS = 10
-"""A pixel of fewer events is checked on a grid instead (:data:`_DENSE_PROBE_STEP` apart,
-:data:`_DENSE_PROBE_SPAN` either side): with about as few events as parameters its
-profile can hold optima as narrow as its curvature says and as likely as its fit, between
-the distances :data:`_PROBES` (a pixel beside ``L_const`` with 7 events: optima of equal
-height 1.65 apart, each about 0.05 wide); its deviation is then the profile's own spread
-about the fit (docs/ml.md)."""
-_DENSE_PROBE_STEP = 0.01
+_DENSE_PROBE_EVENTS = (3, 10)
+"""A pixel of at least the first and fewer than the second of these events is checked on
+a grid instead (:data:`_DENSE_PROBE_STEP` apart, :data:`_DENSE_PROBE_SPAN` either side):
+with about as few events as parameters its profile can hold optima as narrow as its
+curvature says and as likely as its fit, between the distances :data:`_PROBES` (a pixel
+beside ``L_const`` with 7 events: optima of equal height 1.65 apart, each about 0.05
+wide); its deviation is then the profile's own spread about the fit (docs/ml.md). One or
+two events make no such sharp optima, and a single ramp's capture has hundreds of
+thousands of such pixels (the grid would cost it ten times the fit)."""
+_DENSE_PROBE_STEP = 0.02
 _DENSE_PROBE_SPAN = 2.5
 _DENSE_PROBE_N = round(_DENSE_PROBE_SPAN / _DENSE_PROBE_STEP)
 _PROBE_MARGIN = 2.0
@@ -1701,7 +1703,7 @@ def _probe(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, r
                      bvec, st_o)
     g = res[0]
     n = hi - lo
-    dense = n < _DENSE_PROBE_EVENTS
+    dense = _DENSE_PROBE_EVENTS[0] <= n < _DENSE_PROBE_EVENTS[1]
     n_p = _DENSE_PROBE_N if dense else len(_PROBES)
     gs = np.empty(2 * n_p + 1)
     for k in range(n_p):
