@@ -174,18 +174,6 @@ _SCAN_STEP = 0.2
 _PROBES = (0.15, 0.3, 0.5, 1.0, 1.5)
 """A pixel's fit is checked against the likelihood's profile these distances either side
 in ``ln L`` (:func:`_probe`)."""
-_DENSE_PROBE_EVENTS = (3, 10)
-"""A pixel of at least the first and fewer than the second of these events is checked on
-a grid instead (:data:`_DENSE_PROBE_STEP` apart, :data:`_DENSE_PROBE_SPAN` either side):
-with about as few events as parameters its profile can hold optima as narrow as its
-curvature says and as likely as its fit, between the distances :data:`_PROBES` (a pixel
-beside ``L_const`` with 7 events: optima of equal height 1.65 apart, each about 0.05
-wide); its deviation is then the profile's own spread about the fit (docs/ml.md). One or
-two events make no such sharp optima, and a single ramp's capture has hundreds of
-thousands of such pixels (the grid would cost it ten times the fit)."""
-_DENSE_PROBE_STEP = 0.02
-_DENSE_PROBE_SPAN = 2.5
-_DENSE_PROBE_N = round(_DENSE_PROBE_SPAN / _DENSE_PROBE_STEP)
 _PROBE_MARGIN = 2.0
 """... and fitted again from a point of that profile whose ``-2 ln`` likelihood is lower
 by more than this (the Gauss-Newton fit is the likelihood's optimum only nearly: its
@@ -1702,25 +1690,21 @@ def _probe(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, r
                      rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su, mu_u, none, none, h,
                      bvec, st_o)
     g = res[0]
-    n = hi - lo
-    dense = _DENSE_PROBE_EVENTS[0] <= n < _DENSE_PROBE_EVENTS[1]
-    n_p = _DENSE_PROBE_N if dense else len(_PROBES)
+    n_p = len(_PROBES)
     gs = np.empty(2 * n_p + 1)
     for k in range(n_p):
-        d = (k + 1) * _DENSE_PROBE_STEP if dense else _PROBES[k]
-        gs[2 * k] = min(max(g - d, g_lo), g_hi)
-        gs[2 * k + 1] = min(max(g + d, g_lo), g_hi)
+        gs[2 * k] = min(max(g - _PROBES[k], g_lo), g_hi)
+        gs[2 * k + 1] = min(max(g + _PROBES[k], g_lo), g_hi)
+    n = hi - lo
     n_g = 2 * n_p
     buf = np.empty((n, 3 + 3 * n_g))
     _profile_values(gs[:n_g], lo, hi, t, p, mode, dead, sr2, tq2, eq2, exact, v0a, v0b, rows,
                     g0, dlog, locate, wmax, buf)
     obj = np.empty(n_g + 1)
     th = np.empty((n_g, 3))
-    near = 0.5 * (_DENSE_PROBE_STEP if dense else _PROBES[0])
     for q in range(n_g):
         obj[q] = np.inf
-        # (on the grid, a point held at a bound of the range once is enough)
-        if abs(gs[q] - g) >= near and not (dense and q >= 2 and gs[q] == gs[q - 2]):
+        if abs(gs[q] - g) >= 0.5 * _PROBES[0]:
             th[q, 0] = mu_u
             th[q, 1] = c1
             th[q, 2] = c2
@@ -1756,21 +1740,7 @@ def _probe(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, r
             o_fit = o_new
         else:
             _load(res, stat, saved, 0)
-    if res[1] > 0.0 and dense:
-        # the profile on the grid as the likelihood of ln L: the mean square of the fit's
-        # error under it (each point weighed by its likelihood; the fit's curvature as
-        # the least), wherever the grid finds the likelihood's mass
-        sw = 1.0
-        m2 = 0.0
-        for q in range(n_g + 1):
-            d = gs[q] - res[0]
-            if not obj[q] < np.inf or d == 0.0:
-                continue
-            w = math.exp(-0.5 * max(obj[q] - o_fit, -_PROBE_MARGIN))
-            sw += w
-            m2 += w * d * d
-        res[1] = max(res[1], m2 / sw)
-    elif res[1] > 0.0:
+    if res[1] > 0.0:
         # where the profile lies well below what the fit's own curvature predicts there,
         # the likelihood has mass the curvature does not see (a second optimum of
         # near-equal likelihood); the variance is that of the mixture of the fit and those
