@@ -530,14 +530,14 @@ def test_photoreceptor_table_reproduces_the_fine_grid() -> None:
     rig = default_rig("imx636")
     model = ml.ml_model(rig, IMX636, window_us=20_000.0)
     # the table spans the cycle: a twentieth of the low-pass's grid times at most
-    assert model.mode == 1 and model.rows.shape[0] < 0.05 * rig.period_us / DEFAULT_DT_US
-    j = np.arange(0, model.rows.shape[1] - 1, 17)
+    assert model.mode == 1 and model.rows.shape[1] < 0.05 * rig.period_us / DEFAULT_DT_US
+    j = np.arange(0, model.rows.shape[0] - 1, 17)
     w1, w2 = rig.waveforms()
     knots = np.union1d(w1.phase, w2.phase)
     sensor = IMX636
     lp = Lowpass(sensor.tau_ref_us * (sensor.cutoff_irradiance + sensor.dark_irradiance),
                  sensor.dark_irradiance, sensor.tau_max_us)
-    grid = np.exp(model.g0 + model.dlog * np.arange(model.rows.shape[1]))
+    grid = np.exp(model.g0 + model.dlog * np.arange(model.rows.shape[0]))
     i_max = rig.k_lens * (grid[-1] * w1(knots).max() + rig.l_const * w2(knots).max())
     s = time_grid(knots, w1(knots), w2(knots), period_us=float(rig.period_us),
                   tau_min_us=min(lp.tau_num / (i_max + lp.dark_irradiance), lp.tau_max_us))
@@ -550,7 +550,7 @@ def test_photoreceptor_table_reproduces_the_fine_grid() -> None:
     want = np.stack([np.interp(tc, s, row) for row in fine])
     k = model.locate[m, 0].astype(np.int64)
     f = model.locate[m, 1].astype(np.float64)
-    got = (model.rows[k][:, j, 0] + f[:, None] * model.rows[k][:, j, 1]).T
+    got = model.rows[j][:, k, 0] + f[None, :] * model.rows[j][:, k, 1]
     assert np.abs(got - want).max() <= ml.TABLE_TOL + 1e-5
 
 

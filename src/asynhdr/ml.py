@@ -212,7 +212,7 @@ class MlModel:
         refractory`` (``a1 = k_lens T1``, ``b2 = k_lens L_const T2``, ``d`` per µs); a
         single row of zeros in mode 1, which does not read it.
     v0 : ``(a1, b2)`` at the cycle start (mode 0).
-    rows : ``(K, n_rows, 2)`` float32 photoreceptor output at grid time ``s_k`` for grid
+    rows : ``(n_rows, K, 2)`` float32 photoreceptor output at grid time ``s_k`` for grid
         value ``g_j = g0 + j dlog``, and its increment to ``s_{k+1}`` (mode 1); the times
         are those of the low-pass's grid that interpolation needs (:data:`TABLE_TOL`).
     locate : ``(W, 6)`` float32 for mode 1, per whole µs slot: the grid interval ``k``
@@ -446,12 +446,13 @@ def ml_model(rig: Rig, sensor: SensorParams, *, window_us: float | None = None,
     kmax = s.size - 2
     kc, fc, hc = loc(tc)
     ke, fe, he = loc(te)
-    # time-major, value and increment to the next grid time side by side: one evaluation
-    # reads 16 neighbouring bytes
-    tab = np.empty((s.size, n_rows, 2), dtype=np.float32)
-    tab[:, :, 0] = rows.T
-    tab[:-1, :, 1] = np.diff(rows, axis=1).T
-    tab[-1, :, 1] = 0.0
+    # radiance-major, value and increment to the next grid time side by side: a pass over
+    # a pixel's events at one ``g`` walks two rows of the table forward (a few kB, in the
+    # core's first-level cache), not one line of a 2.7 MB table per event
+    tab = np.empty((n_rows, s.size, 2), dtype=np.float32)
+    tab[:, :, 0] = rows
+    tab[:, :-1, 1] = np.diff(rows, axis=1)
+    tab[:, -1, 1] = 0.0
     common["exact"] = np.zeros((1, 8))  # read in mode 0 only
     return MlModel(mode=1, rows=tab, g0=g_lo, dlog=float(dlog),
                    locate=np.stack([kc, fc, ke, fe, hc, he], axis=1).astype(np.float32),
@@ -556,10 +557,10 @@ def _eval_slot(mode, j, w, e, s0, s1, s2, s3, rows, dlog):
         irr = s0 * e + s1
         return math.log(irr), s0 * e / irr, (s2 * e + s3) / irr
     k = int(s0)
-    da = rows[k, j, 1]
-    db = rows[k, j + 1, 1]
-    va = rows[k, j, 0] + s1 * da
-    vb = rows[k, j + 1, 0] + s1 * db
+    da = rows[j, k, 1]
+    db = rows[j + 1, k, 1]
+    va = rows[j, k, 0] + s1 * da
+    vb = rows[j + 1, k, 0] + s1 * db
     return va + w * (vb - va), (vb - va) / dlog, (da + w * (db - da)) * s2
 
 
@@ -571,24 +572,30 @@ def _eval(mode, j, w, e, m, end, exact, v0a, v0b, rows, dlog, locate):
         if mode == 0:
             irr = v0a * e + v0b
             return math.log(irr), v0a * e / irr, 0.0
-        va = rows[0, j, 0]
-        vb = rows[0, j + 1, 0]
+        va = rows[j, 0, 0]
+        vb = rows[j + 1, 0, 0]
         return va + w * (vb - va), (vb - va) / dlog, 0.0
     s0, s1, s2, s3 = _slot(mode, m, end, exact, locate)
     return _eval_slot(mode, j, w, e, s0, s1, s2, s3, rows, dlog)
 
 
 @nb.njit(cache=True, inline="always", error_model="numpy")
+def _slope_slot(mode, j, e, s0, s1, s2, s3, rows, dlog):
+    """``d(dV/dt)/dg`` at the crossing slot that :func:`_slot` read as ``(s0, .., s3)``,
+    for the ``g`` that :func:`_at_g` gave ``(j, w, e)``."""
+    if mode == 0:
+        irr = s0 * e + s1
+        return e * (s2 * s1 - s3 * s0) / (irr * irr)
+    k = int(s0)
+    return (rows[j + 1, k, 1] - rows[j, k, 1]) * s2 / dlog
+
+
+@nb.njit(cache=True, inline="always", error_model="numpy")
 def _slope_g(mode, j, w, e, m, exact, rows, dlog, locate):
     """``d(dV/dt)/dg`` at the crossing time of whole µs slot ``m`` (``m >= 0``), for the
     ``g`` that :func:`_at_g` gave ``(j, w, e)``."""
-    if mode == 0:
-        a = exact[m, 0]
-        b = exact[m, 1]
-        irr = a * e + b
-        return e * (exact[m, 2] * b - exact[m, 3] * a) / (irr * irr)
-    k = int(locate[m, 0])
-    return (rows[k, j + 1, 1] - rows[k, j, 1]) * locate[m, 4] / dlog
+    s0, s1, s2, s3 = _slot(mode, m, False, exact, locate)
+    return _slope_slot(mode, j, e, s0, s1, s2, s3, rows, dlog)
 
 
 @nb.njit(cache=True, inline="always", error_model="numpy")
@@ -612,7 +619,7 @@ def _moment(mode, g, t, p, lo, hi, dead, con, coff, u, exact, v0a, v0b, rows, g0
     dead time the first event is left out (its reference, ``u``, is unknown), unless it
     is the only one. Event ``skip`` is a background event (see :func:`_normal`)."""
     acc = 0.0
-    jg, wg, eg = _at_g(mode, g, g0, dlog, rows.shape[1])
+    jg, wg, eg = _at_g(mode, g, g0, dlog, rows.shape[0])
     vs, _, _ = _eval(mode, jg, wg, eg, -1, False, exact, v0a, v0b, rows, dlog, locate)
     level = 0.0
     base = vs + u
@@ -715,7 +722,7 @@ def _normal(mode, g, uu, con, coff, t, p, lo, hi, dead, sr2, tq2, eq2, lam, exac
     distance (Huber's weights: its pull bounded, not gone)."""
     chi2 = 0.0
     nll = 0.0
-    jg, wg, eg = _at_g(mode, g, g0, dlog, rows.shape[1])
+    jg, wg, eg = _at_g(mode, g, g0, dlog, rows.shape[0])
     vs, dgs, _ = _eval(mode, jg, wg, eg, -1, False, exact, v0a, v0b, rows, dlog, locate)
     n_on = 0.0
     n_off = 0.0
@@ -1077,7 +1084,7 @@ def _profile_scan(a0, step, n_g, mode, con, coff, t, p, lo, hi, dead, sr2, tq2, 
     being linear in the thresholds). One pass over the events for every ``g`` at once:
     only a residual's value and variance depend on ``g``, and the tables' rows of one time
     are read together. ``work`` holds at least ``(n_g, 10)``."""
-    nr = rows.shape[1]
+    nr = rows.shape[0]
     for q in range(n_g):
         jq, wq, eq = _at_g(mode, a0 + q * step, g0, dlog, nr)
         vs, _, _ = _eval(mode, jq, wq, eq, -1, False, exact, v0a, v0b, rows, dlog, locate)
@@ -1457,7 +1464,7 @@ def _profile_values(gs, lo, hi, t, p, mode, dead, sr2, tq2, eq2, exact, v0a, v0b
     ``buf[k]`` (event ``lo + k``) receives ``a_i`` in columns 0 to 2, then per ``gs[q]``
     ``d_i``, the variance and ``|V'(t_c)|`` in columns ``3 + 3q`` to ``5 + 3q``."""
     n_g = gs.shape[0]
-    nr = rows.shape[1]
+    nr = rows.shape[0]
     js = np.empty(n_g, np.int64)
     ws = np.empty(n_g)
     es = np.empty(n_g)
@@ -2010,43 +2017,59 @@ _FAST_CHI2_Z = 3.0
 (``sqrt(2 n)``) above its ``n`` events is fitted in full."""
 
 
+@nb.njit(cache=True, error_model="numpy")
+def _read_slots(mode, lo, hi, t, dead, exact, locate, wmax, sl):
+    """What every pass over a pixel's events reads of the model (:func:`_slot`), read once
+    into ``sl`` (``(>= hi - lo, 8)``): event ``i``'s crossing slot in ``sl[i - lo, :4]``
+    and, with a dead time, the end of the one before's in ``sl[i - lo, 4:]``."""
+    prev = -1
+    for i in range(lo, hi):
+        m = min(t[i], wmax - 1)
+        r = i - lo
+        sl[r, 0], sl[r, 1], sl[r, 2], sl[r, 3] = _slot(mode, m, False, exact, locate)
+        if dead and prev >= 0:
+            sl[r, 4], sl[r, 5], sl[r, 6], sl[r, 7] = _slot(mode, prev, True, exact, locate)
+        prev = m
+
+
 @nb.njit(cache=True, error_model="numpy", fastmath=_FAST_MATH)
-def _fast_pass(mode, g, lo, hi, t, p, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
-               dlog, locate, wmax, c1, c2, mu_u, su2, robust, acc):
+def _fast_pass(mode, g, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
+               dlog, locate, c1, c2, mu_u, su2, robust, acc):
     """One pass over a pixel's events at ``g`` with the thresholds held at ``c1``, ``c2``
     and the start offset at its prior's mean ``mu_u`` (variance ``su2``, added to the
     first equation's): the Newton sums of the one-parameter likelihood into ``acc``:
     ``(sum w r J - sum jac, sum w J^2, sum_on w J, -sum_off w J, max z^2, sum w r^2)``
     (the model of :func:`_normal`, its gradient's Jacobian term included; ``robust``: the
-    outlier weights at ``g``). Without a dead time the walk is taken from the first
-    event's level (``u`` drops out). Each of the model's four kinds (:data:`MlModel.mode`,
-    with or without a dead time) runs its own loop (:func:`_fast_sums`)."""
+    outlier weights at ``g``; ``sl``: the events' slots, :func:`_read_slots`). Without a
+    dead time the walk is taken from the first event's level (``u`` drops out). Each of
+    the model's four kinds (:data:`MlModel.mode`, with or without a dead time) runs its
+    own loop (:func:`_fast_sums`)."""
     if mode == 1:
         if dead:
-            _fast_sums(1, True, g, lo, hi, t, p, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
-                       g0, dlog, locate, wmax, c1, c2, mu_u, su2, robust, acc)
+            _fast_sums(1, True, g, lo, hi, sl, p, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
+                       g0, dlog, locate, c1, c2, mu_u, su2, robust, acc)
         else:
-            _fast_sums(1, False, g, lo, hi, t, p, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
-                       g0, dlog, locate, wmax, c1, c2, mu_u, su2, robust, acc)
+            _fast_sums(1, False, g, lo, hi, sl, p, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
+                       g0, dlog, locate, c1, c2, mu_u, su2, robust, acc)
     elif dead:
-        _fast_sums(0, True, g, lo, hi, t, p, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
-                   dlog, locate, wmax, c1, c2, mu_u, su2, robust, acc)
+        _fast_sums(0, True, g, lo, hi, sl, p, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
+                   dlog, locate, c1, c2, mu_u, su2, robust, acc)
     else:
-        _fast_sums(0, False, g, lo, hi, t, p, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
-                   dlog, locate, wmax, c1, c2, mu_u, su2, robust, acc)
+        _fast_sums(0, False, g, lo, hi, sl, p, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
+                   dlog, locate, c1, c2, mu_u, su2, robust, acc)
 
 
 @nb.njit(cache=True, inline="always", error_model="numpy")
-def _fast_sums(mode, dead, g, lo, hi, t, p, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
-               dlog, locate, wmax, c1, c2, mu_u, su2, robust, acc):
+def _fast_sums(mode, dead, g, lo, hi, sl, p, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
+               dlog, locate, c1, c2, mu_u, su2, robust, acc):
     """:func:`_fast_pass` for one kind of model (``mode`` and ``dead`` constants where it
     is inlined): the first event apart, and no branch on an event's values in the loop."""
     if hi <= lo:
         acc[:] = 0.0
         return
-    jg, wg, eg = _at_g(mode, g, g0, dlog, rows.shape[1])
-    m = min(t[lo], wmax - 1)
-    vc, dgc, dtc = _eval(mode, jg, wg, eg, m, False, exact, v0a, v0b, rows, dlog, locate)
+    jg, wg, eg = _at_g(mode, g, g0, dlog, rows.shape[0])
+    vc, dgc, dtc = _eval_slot(mode, jg, wg, eg, sl[0, 0], sl[0, 1], sl[0, 2], sl[0, 3], rows,
+                              dlog)
     a = 0.0
     b = 0.0
     b_on = 0.0
@@ -2057,33 +2080,32 @@ def _fast_sums(mode, dead, g, lo, hi, t, p, sr2, tq2, eq2, lam, exact, v0a, v0b,
         vs, dgs, _ = _eval(mode, jg, wg, eg, -1, False, exact, v0a, v0b, rows, dlog, locate)
         # the first event from the cycle start's level
         a, b, b_on, b_off, z_max, chi2 = _fast_term(
-            mode, jg, wg, eg, m, p[lo] > 0, vc, dgc, dtc, vs + mu_u, dgs,
-            sr2 + dtc * dtc * tq2 + su2, c1, c2, lam, robust, exact, rows, dlog, locate,
+            mode, jg, wg, eg, sl, 0, p[lo] > 0, vc, dgc, dtc, vs + mu_u, dgs,
+            sr2 + dtc * dtc * tq2 + su2, c1, c2, lam, robust, rows, dlog,
             a, b, b_on, b_off, z_max, chi2)
     # without a dead time, the walk from the first event's level, the crossing it stamps
     base = vc
     dbase = dgc
     var0 = dtc * dtc * tq2
     level = 0.0
-    prev = m
     for i in range(lo + 1, hi):
-        m = min(t[i], wmax - 1)
-        vc, dgc, dtc = _eval(mode, jg, wg, eg, m, False, exact, v0a, v0b, rows, dlog, locate)
+        r = i - lo
+        vc, dgc, dtc = _eval_slot(mode, jg, wg, eg, sl[r, 0], sl[r, 1], sl[r, 2], sl[r, 3],
+                                  rows, dlog)
         on = p[i] > 0
         step = c1 if on else -c2
         if dead:
-            ref, dref, dte = _eval(mode, jg, wg, eg, prev, True, exact, v0a, v0b, rows, dlog,
-                                   locate)
+            ref, dref, dte = _eval_slot(mode, jg, wg, eg, sl[r, 4], sl[r, 5], sl[r, 6],
+                                        sl[r, 7], rows, dlog)
             var = sr2 + dtc * dtc * tq2 + dte * dte * eq2
-            prev = m
         else:
             level += step
             ref = base + level - step
             dref = dbase
-            var = sr2 * (i - lo) + dtc * dtc * tq2 + var0
+            var = sr2 * r + dtc * dtc * tq2 + var0
         a, b, b_on, b_off, z_max, chi2 = _fast_term(
-            mode, jg, wg, eg, m, on, vc, dgc, dtc, ref, dref, var, c1, c2, lam, robust,
-            exact, rows, dlog, locate, a, b, b_on, b_off, z_max, chi2)
+            mode, jg, wg, eg, sl, r, on, vc, dgc, dtc, ref, dref, var, c1, c2, lam, robust,
+            rows, dlog, a, b, b_on, b_off, z_max, chi2)
     acc[0] = a
     acc[1] = b
     acc[2] = b_on
@@ -2093,17 +2115,19 @@ def _fast_sums(mode, dead, g, lo, hi, t, p, sr2, tq2, eq2, lam, exact, v0a, v0b,
 
 
 @nb.njit(cache=True, error_model="numpy", fastmath=_FAST_MATH)
-def _fast_term(mode, jg, wg, eg, m, on, vc, dgc, dtc, ref, dref, var, c1, c2, lam, robust,
-               exact, rows, dlog, locate, a, b, b_on, b_off, z_max, chi2):
-    """One event's terms of :func:`_fast_pass`'s sums, added."""
+def _fast_term(mode, jg, wg, eg, sl, r, on, vc, dgc, dtc, ref, dref, var, c1, c2, lam,
+               robust, rows, dlog, a, b, b_on, b_off, z_max, chi2):
+    """One event's terms of :func:`_fast_pass`'s sums, added (the event's slots in
+    ``sl[r]``)."""
     step = c1 if on else -c2
-    r = vc - ref - step
+    res = vc - ref - step
     jj = dgc - dref
     w = 1.0 / max(var, 1e-12)
-    z2 = r * r * w
+    z2 = res * res * w
     z_max = max(z_max, z2)
     # dV/dt's own slope read whatever dV/dt (the slot is valid): no branch before it
-    jac = _slope_g(mode, jg, wg, eg, m, exact, rows, dlog, locate) / dtc
+    jac = _slope_slot(mode, jg, eg, sl[r, 0], sl[r, 1], sl[r, 2], sl[r, 3], rows,
+                      dlog) / dtc
     jac = min(max(jac, -_JACOBIAN_MAX), _JACOBIAN_MAX) if dtc != 0.0 else 0.0
     if robust:
         f = _time_density(z2, dtc, w)
@@ -2111,8 +2135,8 @@ def _fast_term(mode, jg, wg, eg, m, on, vc, dgc, dtc, ref, dref, var, c1, c2, la
         w *= gam
         jac *= gam
     wj = w * jj
-    chi2 += w * r * r
-    a += w * r * jj - jac
+    chi2 += w * res * res
+    a += w * res * jj - jac
     b += wj * jj
     b_on += wj if on else 0.0
     b_off -= 0.0 if on else wj
@@ -2120,13 +2144,13 @@ def _fast_term(mode, jg, wg, eg, m, on, vc, dgc, dtc, ref, dref, var, c1, c2, la
 
 
 @nb.njit(cache=True, error_model="numpy")
-def _fast_check(mode, gs, nk, lo, hi, t, p, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
-                g0, dlog, locate, wmax, c1, c2, mu_u, su2, ws, nl, prod):
+def _fast_check(mode, gs, nk, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
+                rows, g0, dlog, locate, c1, c2, mu_u, su2, ws, nl, prod):
     """The events' ``-2 sum ln(f_i + lambda)`` (:func:`_fit_nll`'s density) under
     :func:`_fast_pass`'s model, at each of the ``nk`` points ``gs[:nk]``, into ``nl[:nk]``:
-    one pass, each event's slots read once for all points (``ws``: ``(nk, 6)`` work,
-    ``prod``: ``(nk,)``)."""
-    nr = rows.shape[1]
+    one pass over the slots ``sl`` (:func:`_read_slots`) for all points (``ws``:
+    ``(nk, 6)`` work, ``prod``: ``(nk,)``)."""
+    nr = rows.shape[0]
     for k in range(nk):
         j, w, e = _at_g(mode, gs[k], g0, dlog, nr)
         vs, _, _ = _eval(mode, j, w, e, -1, False, exact, v0a, v0b, rows, dlog, locate)
@@ -2136,23 +2160,17 @@ def _fast_check(mode, gs, nk, lo, hi, t, p, dead, sr2, tq2, eq2, lam, exact, v0a
         ws[k, 3] = vs
         prod[k] = 1.0
         nl[k] = 0.0
-    prev = -1
     level = 0.0
-    k_ev = 0
-    b0 = b1 = b2 = b3 = 0.0
     for i in range(lo, hi):
-        m = t[i]
-        if m >= wmax:
-            m = wmax - 1
-        a0, a1, a2, a3 = _slot(mode, m, False, exact, locate)
+        r = i - lo
+        a0 = sl[r, 0]
+        a1 = sl[r, 1]
+        a2 = sl[r, 2]
+        a3 = sl[r, 3]
         step = c1 if p[i] > 0 else -c2
-        first = prev < 0
-        if dead and not first:
-            b0, b1, b2, b3 = _slot(mode, prev, True, exact, locate)
-        elif not dead and not first:
-            k_ev += 1
+        first = r == 0
+        if not dead and not first:
             level += step
-        prev = m
         for k in range(nk):
             j = int(ws[k, 0])
             w = ws[k, 1]
@@ -2163,7 +2181,8 @@ def _fast_check(mode, gs, nk, lo, hi, t, p, dead, sr2, tq2, eq2, lam, exact, v0a
                     ref = ws[k, 3] + mu_u
                     var = sr2 + dtc * dtc * tq2 + su2
                 else:
-                    ref, _, dte = _eval_slot(mode, j, w, e, b0, b1, b2, b3, rows, dlog)
+                    ref, _, dte = _eval_slot(mode, j, w, e, sl[r, 4], sl[r, 5], sl[r, 6],
+                                             sl[r, 7], rows, dlog)
                     var = sr2 + dtc * dtc * tq2 + dte * dte * eq2
             else:
                 if first:
@@ -2172,12 +2191,12 @@ def _fast_check(mode, gs, nk, lo, hi, t, p, dead, sr2, tq2, eq2, lam, exact, v0a
                     ws[k, 5] = dtc * dtc * tq2
                     continue
                 ref = ws[k, 4] + level - step
-                var = sr2 * k_ev + dtc * dtc * tq2 + ws[k, 5]
-            r = vc - ref - step
+                var = sr2 * r + dtc * dtc * tq2 + ws[k, 5]
+            res = vc - ref - step
             if var < 1e-12:
                 var = 1e-12
             iw = 1.0 / var
-            f = _time_density(r * r * iw, dtc, iw)
+            f = _time_density(res * res * iw, dtc, iw)
             # the densities multiplied, the logarithm taken before the product could leave
             # float64's range
             d = max(f + lam, _DENSITY_FLOOR)
@@ -2215,6 +2234,10 @@ def _fast_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, row
         prod = np.empty(len(_FAST_PROBES) + 1)
         ws = np.empty((len(_FAST_PROBES) + 1, 6))
         res, saved, work, scan = _fit_space(g_lo, g_hi)
+        n_max = 0
+        for px in range(blk * _BLOCK, min(npx, (blk + 1) * _BLOCK)):
+            n_max = max(n_max, off[px + 1] - off[px])
+        sl = np.empty((n_max, 8))
         for px in range(blk * _BLOCK, min(npx, (blk + 1) * _BLOCK)):
             lo = off[px]
             hi = off[px + 1]
@@ -2240,10 +2263,12 @@ def _fast_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, row
             converged = False
             last = 0.0
             held = s1 <= hold_sd and s2 <= hold_sd
+            if held:
+                _read_slots(mode, lo, hi, t, dead, exact, locate, wmax, sl)
             acc[:] = 0.0
             for _ in range(_FAST_ITER if held else 0):
-                _fast_pass(mode, g, lo, hi, t, p, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
-                           rows, g0, dlog, locate, wmax, c1, c2, mu_u, su * su, robust, acc)
+                _fast_pass(mode, g, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
+                           rows, g0, dlog, locate, c1, c2, mu_u, su * su, robust, acc)
                 if not acc[1] > 0.0:
                     break
                 dg = min(max(-acc[0] / acc[1], -_MAX_STEP_G), _MAX_STEP_G)
@@ -2281,9 +2306,8 @@ def _fast_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, row
                     if gq != g:
                         gs[nk] = gq
                         nk += 1
-                _fast_check(mode, gs, nk, lo, hi, t, p, dead, sr2, tq2, eq2, lam, exact, v0a,
-                            v0b, rows, g0, dlog, locate, wmax, c1, c2, mu_u, su * su, ws, nl,
-                            prod)
+                _fast_check(mode, gs, nk, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0a,
+                            v0b, rows, g0, dlog, locate, c1, c2, mu_u, su * su, ws, nl, prod)
                 for k in range(1, nk):
                     if nl[k] < nl[0] - _PROBE_MARGIN:
                         poor = True
@@ -2665,7 +2689,7 @@ def _sparse_kernel(todo, off, t, p, mode, exact, v0a, v0b, rows, g0, dlog, locat
         silence = np.empty(ng)
         for j in range(ng):
             g = ext_g[j]
-            jj, ww, e = _at_g(mode, g, g0, dlog, rows.shape[1])
+            jj, ww, e = _at_g(mode, g, g0, dlog, rows.shape[0])
             pr = _silence(ext, j, c1, c2, s1, s2, u_sd)
             silence[j] = pr
             if n == 1:
