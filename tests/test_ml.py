@@ -554,6 +554,29 @@ def test_photoreceptor_table_reproduces_the_fine_grid() -> None:
     assert np.abs(got - want).max() <= ml.TABLE_TOL + 1e-5
 
 
+def test_few_events_state_the_spread_of_a_profile_with_two_optima() -> None:
+    # the seven events of a pixel at 34.95 lux beside L_const (the bench's chart, seed 0,
+    # first cycle, row 86, column 325), nominal thresholds: the likelihood's profile has
+    # two optima of equal height 1.65 apart in ln L, each about 0.05 wide, between the
+    # probe's distances; the fit sits in the one 1.7 below the truth (its curvature says
+    # 0.13), and its stated deviation covers the other (at a factor e or more the pixel
+    # would be no estimate: NaN, flagged)
+    rig = default_rig("imx636")
+    t = [14199, 29252, 32347, 72526, 123133, 162191, 174242]
+    ev = np.zeros(len(t), EVENT_DTYPE)
+    ev["t"] = t
+    ev["p"] = [1, -1, -1, 1, -1, 1, 1]
+    out: dict = {}
+    img = ml.reconstruct_ml(Recording(events=ev, width=1, height=1, metadata={}),
+                            CycleWindows(np.array([0]), rig.ramp_us), rig=rig,
+                            sensor=get_preset("imx636"), learn=False, out=out)
+    err = math.log(float(img[0, 0, 0]) / 34.95)
+    sd = float(out["sigma_log"][0, 0, 0])
+    assert out["flags"][0, 0, 0] == (ml.FLAG_UNINFORMED if sd >= 1.0 else 0)
+    assert abs(err) > 1.0  # the other optimum: the estimate is no better than its events
+    assert 0.5 < sd and abs(err) < 2.0 * sd
+
+
 def test_ml_reports_its_fits_as_they_go_with_the_same_images() -> None:
     # the fits in parts, each reported: pixel-cycles rising to their total (two cycles and
     # the first fitted again once the second has taught the thresholds), and the same

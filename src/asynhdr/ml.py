@@ -186,6 +186,17 @@ _DESCENT_LEVELS = 16
 _MODE_EXCESS = 4.0
 """A point of the profile (:func:`_probe`) widens a fit's stated deviation when its ``-2 ln``
 likelihood lies more than this below what the fit's own curvature predicts there."""
+_FEW_EVENTS = (3, 10)
+"""A fit from this many events (at least, fewer than), about as few as its parameters,
+states the spread of its likelihood's profile on a grid (:func:`_few_events_kernel`): such
+a profile can hold optima as narrow as the fit's curvature says, as likely as the fit and
+between the distances :data:`_PROBES` (docs/ml.md, "Fits of few events"). One or two
+events make no sharp optima."""
+_FEW_STEP = 0.02
+"""... the grid's spacing in ``ln L`` ..."""
+_FEW_SPAN = 2.5
+"""... and its reach either side of the fit."""
+_FEW_HALF = round(_FEW_SPAN / _FEW_STEP)
 _HUBER = 3.0
 """Gauss-Newton's first phase weighs an equation more than this many standard deviations
 off as if it were at that distance: a background event's pull is bounded before the
@@ -1769,6 +1780,74 @@ def _probe(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, r
             res[1] = v + m2 / sw - (m1 / sw) ** 2
 
 
+@nb.njit(cache=True, parallel=True, error_model="numpy")
+def _few_events_kernel(todo, off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
+                       rows, g0, dlog, locate, wmax, g_lo, g_hi, con0, coff0, scon, scoff,
+                       u_sd, out_g, out_sd, out_u, out_con, out_coff, out_flag):
+    """The stated deviation of each fit ``todo`` (few events, :data:`_FEW_EVENTS`) widened
+    to its likelihood's spread about it, where that is wider: the profile (``u`` and the
+    thresholds fitted, :func:`_profile_from_values`) on a grid :data:`_FEW_STEP` apart
+    over :data:`_FEW_SPAN` either side, walked outwards from the fit, each point weighed
+    by its likelihood relative to the fit's (:data:`_PROBE_MARGIN` likelier at most), the
+    fit itself a point. Only the deviation changes, and the flag where it reaches
+    :data:`FLAG_UNINFORMED`: nothing the fits do reads them again."""
+    n_half = _FEW_HALF
+    for q0 in nb.prange(todo.shape[0]):
+        px = todo[q0]
+        lo = off[px]
+        hi = off[px + 1]
+        n = hi - lo
+        c1 = con0[px]
+        c2 = coff0[px]
+        s1 = max(scon[px], 1e-6)
+        s2 = max(scoff[px], 1e-6)
+        su, mu_u = _u_prior(c1, c2, u_sd)
+        g = out_g[px]
+        res = np.zeros(6)
+        res[0] = g
+        res[2] = out_u[px]
+        res[3] = out_con[px]
+        res[4] = out_coff[px]
+        h = np.zeros((4, 4))
+        bvec = np.zeros(4)
+        st = np.zeros(5)
+        none = np.int64(-1)
+        o_fit = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
+                         rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su, mu_u, none, none,
+                         h, bvec, st)
+        gs = np.empty(2 * n_half)
+        n_g = 0
+        for side in (-1.0, 1.0):
+            for k in range(1, n_half + 1):
+                gq = g + side * k * _FEW_STEP
+                if gq < g_lo or gq > g_hi:
+                    break
+                gs[n_g] = gq
+                n_g += 1
+        buf = np.empty((n, 3 + 3 * n_g))
+        _profile_values(gs[:n_g], lo, hi, t, p, mode, dead, sr2, tq2, eq2, exact, v0a, v0b,
+                        rows, g0, dlog, locate, wmax, buf)
+        th = np.empty(3)
+        sw = 1.0
+        m2 = 0.0
+        for q in range(n_g):
+            if q == 0 or (gs[q] - g) * (gs[q - 1] - g) < 0.0:
+                # each side's walk starts at the fit's own u and thresholds
+                th[0] = res[2]
+                th[1] = res[3]
+                th[2] = res[4]
+            o = _profile_from_values(buf, n, q, lam, c1, c2, s1, s2, su, mu_u, th)
+            d = gs[q] - g
+            w = math.exp(-0.5 * max(o - o_fit, -_PROBE_MARGIN))
+            sw += w
+            m2 += w * d * d
+        var = m2 / sw
+        if var > out_sd[px] ** 2:
+            out_sd[px] = math.sqrt(var)
+            # uncertain to a factor e or more: no estimate, as for any fit
+            out_flag[px] = _fit_flag(g, var, g_lo, g_hi)
+
+
 @nb.njit(cache=True, error_model="numpy")
 def _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
                dlog, locate, wmax, g_lo, g_hi, net_g, net_v, c1, c2, s1, s2, gp, sgp,
@@ -3212,6 +3291,7 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
             if left.size == few.size:
                 break
             few = left[counts[left] == 0]
+    extra: tuple[np.ndarray, ...] = ()
     if threshold_sd:
         son = np.empty(npx)
         soff = np.empty(npx)
@@ -3222,8 +3302,19 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
                              float(start_sigma), out_g, out_sd, out_u, out_con, out_coff,
                              np.where(full != 0, out_flag, np.uint8(255)) if fast else
                              out_flag, son, soff)
-        return out_g, out_sd, out_con, out_coff, out_flag, counts, son, soff
-    return out_g, out_sd, out_con, out_coff, out_flag, counts
+        extra = (son, soff)
+    if not fixed and not np.any(sp > 0.0):
+        # last, as nothing above reads the fits' deviations again
+        few = np.flatnonzero((counts >= _FEW_EVENTS[0]) & (counts < _FEW_EVENTS[1])
+                             & (out_flag == 0)).astype(np.int64)
+        if few.size:
+            _few_events_kernel(few, off, t, p, model.mode, model.dead, model.reset_sigma ** 2,
+                               tq2, eq2, model.noise_rate_per_us, model.exact, model.v0[0],
+                               model.v0[1], model.rows, model.g0, model.dlog, model.locate,
+                               np.int64(model.window_us), model.g_lo, model.g_hi, con, coff,
+                               scon, scoff, float(start_sigma), out_g, out_sd, out_u,
+                               out_con, out_coff, out_flag)
+    return (out_g, out_sd, out_con, out_coff, out_flag, counts, *extra)
 
 
 def _beyond_range(g: np.ndarray, sd: np.ndarray, flags: np.ndarray, g_lo: float,

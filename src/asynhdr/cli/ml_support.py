@@ -95,7 +95,8 @@ class MlOutputs:
         if sigma is None or flags is None:
             return
         fl = next((f for f in self.formats if f in _FLOAT_FORMATS), "exr")
-        sm = dict(meta, quantity="standard deviation of ln L (model bound at the estimate)")
+        sm = dict(meta, quantity="standard deviation of ln L (the likelihood's at the "
+                  "estimate, widened where it has more than one optimum)")
         write_image(Path(f"{stem}_sigma.{fl}"), sigma[0], allow_nan=True,
                     metadata=sm if fl in ("exr", "tif") else None)
         import cv2
