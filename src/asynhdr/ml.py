@@ -42,9 +42,11 @@ density in time. Such an event still resets the pixel, which the chain keeps.
 The image is ``L = exp(g_hat)`` in the scene's unit; the uncertainty is the standard
 deviation of ``g_hat`` from the inverse of the information matrix at the estimate
 (thresholds and ``u`` marginalised), the Cramér-Rao bound of this model for this pixel's
-events. :func:`fisher_information` evaluates the same matrix at a given ``g`` (the
-truth, on the noiseless event sequence): the bound to compare the estimator's variance
-with.
+events, widened where the likelihood's profile shows mass the curvature does not see (a
+second optimum: :func:`_probe`; for fits of 3 to 9 events, the profile's spread on a grid,
+:func:`_few_events_kernel`). :func:`fisher_information` evaluates the same matrix at a
+given ``g`` (the truth, on the noiseless event sequence): the bound to compare the
+estimator's variance with.
 
 What is approximate, and stated as such: ``s_i`` is held at the current estimate in each
 step (the dependence of the noise on ``g`` through ``V'`` is not differentiated); the
