@@ -684,6 +684,11 @@ def test_first_cycle_fitted_again_with_what_the_second_taught() -> None:
 
     assert rms(both[0]) < 0.92 * rms(alone[0])
     assert rms(both[0]) < 1.15 * rms(both[1])
+    # without the refit (a caller that keeps the last cycle): the first cycle as fitted
+    # alone, the second the same
+    kept = reconstruct(rec, method="ml", ml_options={"refit_first": False})
+    np.testing.assert_array_equal(kept[0], alone[0])
+    np.testing.assert_array_equal(kept[1], both[1])
 
 
 def test_thresholds_learned_from_the_recordings_own_cycles() -> None:

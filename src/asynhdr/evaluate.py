@@ -223,7 +223,8 @@ def evaluate_scene(
             raise ValueError(f"{ML_FAST} holds the calibration's thresholds: it needs a "
                              "calibration (a rig: --designed or --rig)")
         elif m == ML_UNCALIBRATED:
-            img = reconstruct(rec, method="ml")[-1]
+            # the last cycle, learned from the first: the first is not fitted again
+            img = reconstruct(rec, method="ml", ml_options={"refit_first": False})[-1]
         else:
             img = reconstruct(rec, method=m, k=k, cmap=cmap,
                               ml_options={"out": ml_out} if m == "ml" else None)[-1]

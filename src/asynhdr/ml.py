@@ -3544,6 +3544,7 @@ def reconstruct_ml(
     neighbours: bool = True,
     learn: bool = True,
     learner: LearnedThresholds | None = None,
+    refit_first: bool = True,
     fast: bool = False,
 ) -> np.ndarray:
     """``ml`` on a recording: float32 radiance ``(n_cycles, height, width)`` in the unit of
@@ -3574,7 +3575,8 @@ def reconstruct_ml(
     to the next (a recording reconstructed cycle by cycle), else each call starts from
     the nominal thresholds. A call that starts the learning with two cycles or more fits
     its first cycle again once the second has taught the thresholds
-    (:meth:`LearnedThresholds.first_cycle_priors`; not with ``fast``).
+    (:meth:`LearnedThresholds.first_cycle_priors`; not with ``fast``, nor with
+    ``refit_first`` False: a caller that keeps only the last cycle).
     ``fast``: the fast fit (:func:`estimate`; docs/ml.md): ``ln L`` alone with the
     thresholds held: calibrated ones (``thresholds`` or ``cmap``), or, while learning,
     each pixel's once learned to :data:`FAST_HOLD_SD` (until then the full fit, which
@@ -3621,7 +3623,7 @@ def reconstruct_ml(
         # the first cycle fitted again once the second has taught its thresholds
         # (LearnedThresholds.first_cycle_priors): where this call starts the learning, and
         # not with the fast fit, whose held pixels learn nothing in the second cycle
-        again = learner.cycles == 0 and len(starts) > 1 and not fast
+        again = refit_first and learner.cycles == 0 and len(starts) > 1 and not fast
         n_fits = len(starts) + again
         parts = []
         npx = w * h
