@@ -595,7 +595,7 @@ def _eval(mode, j, w, e, m, end, exact, v0a, v0b, rows, dlog, locate):
 @nb.njit(cache=True, inline="always", error_model="numpy")
 def _slope_slot(mode, j, e, s0, s1, s2, s3, rows, dlog):
     """``d(dV/dt)/dg`` at the crossing slot that :func:`_slot` read as ``(s0, .., s3)``,
-    for the ``g`` that :func:`_at_g` gave ``(j, w, e)``."""
+    for the ``g`` whose grid row :func:`_at_g` gave as ``j`` (mode 1), or ``L = e``."""
     if mode == 0:
         irr = s0 * e + s1
         return e * (s2 * s1 - s3 * s0) / (irr * irr)
