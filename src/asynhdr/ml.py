@@ -195,10 +195,7 @@ a profile can hold optima as narrow as the fit's curvature says, as likely as th
 between the distances :data:`_PROBES` (docs/ml.md, "Fits of few events"). One or two
 events make no sharp optima."""
 _FEW_STEP = 0.02
-"""... the grid's spacing in ``ln L`` ..."""
-_FEW_SPAN = 2.5
-"""... and its reach either side of the fit."""
-_FEW_HALF = round(_FEW_SPAN / _FEW_STEP)
+"""... the grid's spacing in ``ln L`` (it spans the model's whole range)."""
 _HUBER = 3.0
 """Gauss-Newton's first phase weighs an equation more than this many standard deviations
 off as if it were at that distance: a background event's pull is bounded before the
@@ -1789,11 +1786,12 @@ def _few_events_kernel(todo, off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v
     """The stated deviation of each fit ``todo`` (few events, :data:`_FEW_EVENTS`) widened
     to its likelihood's spread about it, where that is wider: the profile (``u`` and the
     thresholds fitted, :func:`_profile_from_values`) on a grid :data:`_FEW_STEP` apart
-    over :data:`_FEW_SPAN` either side, walked outwards from the fit, each point weighed
+    over the model's range, walked outwards from the fit, each point weighed
     by its likelihood relative to the fit's (:data:`_PROBE_MARGIN` likelier at most), the
-    fit itself a point. Only the deviation changes, and the flag where it reaches
-    :data:`FLAG_UNINFORMED`: nothing the fits do reads them again."""
-    n_half = _FEW_HALF
+    fit itself a point. Only the deviation changes, and where it reaches a factor e the
+    fit is none (:data:`FLAG_UNINFORMED`, ``g`` NaN): nothing the fits do reads them
+    again."""
+    n_max = int((g_hi - g_lo) / _FEW_STEP) + 2
     for q0 in nb.prange(todo.shape[0]):
         px = todo[q0]
         lo = off[px]
@@ -1817,10 +1815,10 @@ def _few_events_kernel(todo, off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v
         o_fit = _fit_nll(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
                          rows, g0, dlog, locate, wmax, c1, c2, s1, s2, su, mu_u, none, none,
                          h, bvec, st)
-        gs = np.empty(2 * n_half)
+        gs = np.empty(n_max)
         n_g = 0
         for side in (-1.0, 1.0):
-            for k in range(1, n_half + 1):
+            for k in range(1, n_max + 1):
                 gq = g + side * k * _FEW_STEP
                 if gq < g_lo or gq > g_hi:
                     break
@@ -1846,8 +1844,12 @@ def _few_events_kernel(todo, off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v
         var = m2 / sw
         if var > out_sd[px] ** 2:
             out_sd[px] = math.sqrt(var)
-            # uncertain to a factor e or more: no estimate, as for any fit
-            out_flag[px] = _fit_flag(g, var, g_lo, g_hi)
+            if var >= _VAR_INFORMED:
+                # uncertain to a factor e or more: no estimate, as for any fit; and not one
+                # at a bound either (:func:`_beyond_range`): the spread is the events'
+                # optima far apart, not a plateau that runs out of the range
+                out_flag[px] = FLAG_UNINFORMED
+                out_g[px] = np.nan
 
 
 @nb.njit(cache=True, error_model="numpy")
