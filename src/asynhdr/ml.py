@@ -93,6 +93,7 @@ from asynhdr.sensor.photoreceptor import Lowpass, lowpass_rows, time_grid
 __all__ = [
     "DEFAULT_DLOG",
     "FAST_HOLD_SD",
+    "FLAG_AMBIGUOUS",
     "FLAG_FEW_EVENTS",
     "FLAG_FILLED",
     "FLAG_NO_EVENTS",
@@ -152,6 +153,12 @@ FLAG_FEW_EVENTS = 16
 under the likelihood of so few (:func:`_sparse_kernel`; near ``L_const`` the signal swings
 least, so silence is likeliest there): an estimate with its deviation, in the mask. With
 :data:`FLAG_UNINFORMED`: that likelihood fixes ``L`` to no better than a factor e: NaN."""
+FLAG_AMBIGUOUS = 32
+"""Flag: a fit of few events (:data:`_FEW_EVENTS`) in a sharp optimum of its likelihood,
+whose profile holds about as likely values a factor e or more away (another optimum):
+the estimate is the fit's, in the mask, and its deviation (1 or more) the likelihood's
+spread about it (:func:`_few_events_kernel`). Not a plateau (:data:`FLAG_UNINFORMED`):
+the events make the fit's value as likely as any, and do not tell it from the others."""
 
 _MAX_ITER = 16
 _TOL_G = 1e-3
@@ -1788,9 +1795,8 @@ def _few_events_kernel(todo, off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v
     thresholds fitted, :func:`_profile_from_values`) on a grid :data:`_FEW_STEP` apart
     over the model's range, walked outwards from the fit, each point weighed
     by its likelihood relative to the fit's (:data:`_PROBE_MARGIN` likelier at most), the
-    fit itself a point. Only the deviation changes, and where it reaches a factor e the
-    fit is none (:data:`FLAG_UNINFORMED`, ``g`` NaN): nothing the fits do reads them
-    again."""
+    fit itself a point. Only the deviation changes (and the flag, :data:`FLAG_AMBIGUOUS`,
+    where it reaches a factor e): nothing the fits do reads them again."""
     n_max = int((g_hi - g_lo) / _FEW_STEP) + 2
     for q0 in nb.prange(todo.shape[0]):
         px = todo[q0]
@@ -1845,11 +1851,7 @@ def _few_events_kernel(todo, off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v
         if var > out_sd[px] ** 2:
             out_sd[px] = math.sqrt(var)
             if var >= _VAR_INFORMED:
-                # uncertain to a factor e or more: no estimate, as for any fit; and not one
-                # at a bound either (:func:`_beyond_range`): the spread is the events'
-                # optima far apart, not a plateau that runs out of the range
-                out_flag[px] = FLAG_UNINFORMED
-                out_g[px] = np.nan
+                out_flag[px] = FLAG_AMBIGUOUS
 
 
 @nb.njit(cache=True, error_model="numpy")
@@ -2938,16 +2940,18 @@ class MlResult:
 
     @property
     def mask(self) -> np.ndarray:
-        """True where the pixel has an estimate inside the model's range (from its fit, or
-        from how few events it fired: :data:`FLAG_FEW_EVENTS`)."""
+        """True where the pixel has an estimate inside the model's range (from its fit, an
+        ambiguous one's too, :data:`FLAG_AMBIGUOUS`, or from how few events it fired:
+        :data:`FLAG_FEW_EVENTS`)."""
         return valid_flags(self.flags)
 
 
 def valid_flags(flags: np.ndarray) -> np.ndarray:
     """True where ``flags`` (:class:`MlResult`'s) mark an estimate inside the model's range:
-    a fit (0) or an estimate from fewer than two events (:data:`FLAG_FEW_EVENTS`)."""
+    a fit (0; :data:`FLAG_AMBIGUOUS`) or an estimate from fewer than two events
+    (:data:`FLAG_FEW_EVENTS`)."""
     f = np.asarray(flags)
-    return (f == 0) | (f == FLAG_FEW_EVENTS)
+    return (f == 0) | (f == FLAG_FEW_EVENTS) | (f == FLAG_AMBIGUOUS)
 
 
 def thresholds_prior(sensor: SensorParams, *, width: int, height: int,
@@ -3444,12 +3448,14 @@ def estimate(
     n_out = int(np.count_nonzero(flags == FLAG_OUT_OF_RANGE))
     n_vague = int(np.count_nonzero(flags & FLAG_UNINFORMED))
     n_few = int(np.count_nonzero(flags == FLAG_FEW_EVENTS))
-    if n_none or n_out or n_vague or n_few:
+    n_amb = int(np.count_nonzero(flags == FLAG_AMBIGUOUS))
+    if n_none or n_out or n_vague or n_few or n_amb:
         logger.info("ml: %d pixel-cycles without an estimate from fewer than two events, "
                     "and %d whose events fix L to no better than a factor e: NaN; %d "
-                    "estimated from fewer than two events; %d at a bound of the model's "
-                    "range (%.3g to %.3g): the bound", n_none, n_vague, n_few, n_out,
-                    math.exp(model.g_lo), math.exp(model.g_hi))
+                    "estimated from fewer than two events; %d fitted from few events "
+                    "whose likelihood has other optima a factor e or more away; %d at a "
+                    "bound of the model's range (%.3g to %.3g): the bound", n_none, n_vague,
+                    n_few, n_amb, n_out, math.exp(model.g_lo), math.exp(model.g_hi))
     return MlResult(radiance=rad, sigma_log=sd, flags=flags, c_on=con, c_off=coff,
                     n_events=nev, sd_on=sd_on, sd_off=sd_off, full_fits=full_fits)
 
