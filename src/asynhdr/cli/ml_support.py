@@ -2,13 +2,15 @@
 
 For ``--method ml`` each cycle writes, beside the radiance image (NaN where a pixel has no
 information; the range's bound where the estimate reached it), ``<stem>_sigma.<ext>``:
-the standard deviation of ``ln L`` per pixel (the model's bound at the estimate), in the
+the standard deviation of ``ln L`` per pixel (the likelihood's at the estimate), in the
 first float format asked for (``.exr`` by default), and ``<stem>_valid.png``: 255 where
 the pixel's events were fitted inside the model's range, 128 where its estimate comes
 from fewer than two events (:data:`asynhdr.ml.FLAG_FEW_EVENTS`: every silent pixel of the
 same thresholds reads the same, so a region's spread says nothing of their error; their
-deviation in ``_sigma`` does), 0 where it has none. A calibration file's dead pixels are
-filled from their neighbours (and are 0 in ``_valid.png``).
+deviation in ``_sigma`` does) or from few events that other values explain about as well
+(:data:`asynhdr.ml.FLAG_AMBIGUOUS`: a deviation of 1 or more), 0 where it has none. A
+calibration file's dead pixels are filled from their neighbours (and are 0 in
+``_valid.png``).
 """
 
 from __future__ import annotations
