@@ -200,7 +200,8 @@ _FEW_EVENTS = (3, 10)
 states the spread of its likelihood's profile on a grid (:func:`_few_events_kernel`): such
 a profile can hold optima as narrow as the fit's curvature says, as likely as the fit and
 between the distances :data:`_PROBES` (docs/ml.md, "Fits of few events"). One or two
-events make no sharp optima. Not in the fast fit, whose time it would double."""
+events make no sharp optima. Not the fast fit's own fits (:func:`_fast_kernel`), whose
+time it would double; its pixels fitted in full, yes."""
 _FEW_STEP = 0.02
 """... the grid's spacing in ``ln L`` (it spans the model's whole range)."""
 _HUBER = 3.0
@@ -3311,11 +3312,12 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
                              np.where(full != 0, out_flag, np.uint8(255)) if fast else
                              out_flag, son, soff)
         extra = (son, soff)
-    if not fixed and not fast and not np.any(sp > 0.0):
-        # last, as nothing above reads the fits' deviations again (not in the fast fit:
-        # it would double its time, docs/ml.md)
+    if not fixed and not np.any(sp > 0.0):
+        # last, as nothing above reads the fits' deviations again; the fast fit's own
+        # fits are left as they are (the grid would double its time, docs/ml.md)
         few = np.flatnonzero((counts >= _FEW_EVENTS[0]) & (counts < _FEW_EVENTS[1])
-                             & (out_flag == 0)).astype(np.int64)
+                             & (out_flag == 0) & ((full != 0) | (not fast))
+                             ).astype(np.int64)
         if few.size:
             _few_events_kernel(few, off, t, p, model.mode, model.dead, model.reset_sigma ** 2,
                                tq2, eq2, model.noise_rate_per_us, model.exact, model.v0[0],
