@@ -20,6 +20,7 @@ from asynhdr.evaluate import (
     evaluate_scene,
     rig_mid_radiance,
 )
+from asynhdr.experiments import finite_image
 from asynhdr.report import render_report
 from asynhdr.rig import Rig
 from asynhdr.scene import exposure_scale, from_radiance_map, log_average
@@ -169,3 +170,20 @@ def test_evaluate_ml_fast_beside_ml_with_the_same_calibration() -> None:
     with pytest.raises(ValueError, match="calibration"):
         evaluate_scene(scene, name="ramp", width=32, height=24, sensor="imx636", n_cycles=1,
                        rig=rig, methods=(ML_FAST,))
+
+
+def test_finite_image_counts_the_scenes_holes_apart_from_the_padding(
+        caplog: pytest.LogCaptureFixture) -> None:
+    # a 2x4 image whose outer columns are padding: one NaN inside the scene, two outside,
+    # one infinity; NaN -> 0, infinity -> the largest finite value (5)
+    img = np.array([[np.nan, 1.0, np.nan, 5.0], [np.nan, 2.0, np.inf, 3.0]], np.float32)
+    region = np.zeros(img.shape, bool)
+    region[:, 1:3] = True
+    with caplog.at_level("WARNING", logger="asynhdr.experiments"):
+        out, n = finite_image(img, name="scene ml", region=region)
+    assert n == 4
+    np.testing.assert_array_equal(out, [[0, 1, 0, 5], [0, 2, 5, 3]])
+    assert "scene ml: 1 of the scene's 4 pixels without an estimate" in caplog.text
+    assert "(and 2 around the scene), 1 infinite" in caplog.text
+    with pytest.raises(ValueError, match="region's shape"):
+        finite_image(img, region=region[:, :2])

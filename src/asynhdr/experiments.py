@@ -129,10 +129,15 @@ class MethodResult:
         }
 
 
-def finite_image(image: np.ndarray, *, name: str = "image") -> tuple[np.ndarray, int]:
+def finite_image(image: np.ndarray, *, name: str = "image",
+                 region: np.ndarray | None = None) -> tuple[np.ndarray, int]:
     """The image with its non-finite pixels made finite, and how many there were: NaN (a
     pixel without an estimate) becomes 0, a hole that the metrics charge in full;
-    infinity (an overflowing ``exp``) becomes the image's largest finite value."""
+    infinity (an overflowing ``exp``) becomes the image's largest finite value.
+
+    ``region``: the pixels that hold the scene (a boolean mask of the image's shape); the
+    warning then counts the holes in it apart from those around it (a padded scene's
+    border, where nothing is measured)."""
     img = np.asarray(image)
     bad = ~np.isfinite(img)
     n = int(bad.sum())
@@ -143,8 +148,19 @@ def finite_image(image: np.ndarray, *, name: str = "image") -> tuple[np.ndarray,
     nan = np.isnan(img)
     out = np.where(nan, 0.0, np.where(bad, top, img)).astype(img.dtype)
     n_nan = int(nan.sum())
-    logger.warning("%s: %d pixels without an estimate (NaN) set to 0, %d infinite ones to "
-                   "the image's largest finite value", name, n_nan, n - n_nan)
+    n_inf = n - n_nan
+    if region is None:
+        logger.warning("%s: %d pixels without an estimate (NaN) set to 0, %d infinite ones "
+                       "to the image's largest finite value", name, n_nan, n_inf)
+    else:
+        inside = np.asarray(region, bool)
+        if inside.shape != img.shape:
+            raise ValueError(f"finite_image: region's shape {inside.shape} is not the "
+                             f"image's {img.shape}")
+        n_in = int(np.count_nonzero(nan & inside))
+        logger.warning("%s: %d of the scene's %d pixels without an estimate (NaN) set to 0 "
+                       "(and %d around the scene), %d infinite ones to the image's largest "
+                       "finite value", name, n_in, int(inside.sum()), n_nan - n_in, n_inf)
     return out, n
 
 
