@@ -441,6 +441,12 @@ def test_cli_calibrate_thresholds_then_reconstruct_with_calibration(tmp_path: Pa
         assert res.exit_code == 0, res.output
         flats.append(str(f))
     cal = tmp_path / "cal.npz"
+    # two values after one --radiance: the second would be read as a recording
+    res = runner.invoke(app, ["calibrate-thresholds", *flats, "--radiance", "30",
+                              "0.03", "--rig", str(rig), "-o", str(cal)])
+    assert res.exit_code != 0 and not cal.exists()
+    assert "0.03: no such recording; a radiance? Give --radiance once per value " \
+        "(--radiance 30 --radiance 0.03)" in " ".join(res.output.split())
     res = runner.invoke(app, ["calibrate-thresholds", *flats, "--radiance", str(lc * 30),
                               "--radiance", str(lc / 30), "--rig", str(rig), "-o", str(cal)])
     assert res.exit_code == 0, res.output

@@ -19,8 +19,9 @@ def calibrate_thresholds(
     flats: list[Path] = typer.Argument(..., help="Flat-field recordings of one sensor "
                                        "behind the rig (brighter and darker than L_const)."),
     radiance: list[float] = typer.Option(..., "--radiance", help="Each flat field's radiance "
-                                         "in the rig's unit (once for all, or once per "
-                                         "recording, in order)."),
+                                         "in the rig's unit: once for all, or once per "
+                                         "recording, in order (--radiance 506 --radiance "
+                                         "0.56)."),
     rig: Path = typer.Option(..., "--rig", help="Rig file (TOML) of the captures; its "
                              "\\[sensor] table is the pixel model (else --preset)."),
     out: Path = typer.Option(..., "--out", "-o", help="Calibration file to write (.npz)."),
@@ -45,6 +46,10 @@ def calibrate_thresholds(
     if out.suffix.lower() != ".npz":
         fail(f"{out}: a calibration file is written as .npz")
     check_outputs([out], overwrite=overwrite)
+    for f in flats:
+        if not f.exists() and _is_number(str(f)):
+            fail(f"{f}: no such recording; a radiance? Give --radiance once per value "
+                 f"(--radiance {radiance[0]:g} --radiance {f})")
     if len(radiance) not in (1, len(flats)):
         fail(f"--radiance: give one value, or one per recording ({len(flats)}); got "
              f"{len(radiance)}")
@@ -80,3 +85,11 @@ def calibrate_thresholds(
         f"{cal.how['dead_pixels']:,} dead pixels (no event in any cycle)"
         + (f"; panel curves {sorted(cal.panel_curves)}" if cal.panel_curves else "")
         + f" -> {out}")
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
