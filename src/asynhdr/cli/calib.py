@@ -47,9 +47,14 @@ def calibrate_thresholds(
         fail(f"{out}: a calibration file is written as .npz")
     check_outputs([out], overwrite=overwrite)
     for f in flats:
-        if not f.exists() and _is_number(str(f)):
-            fail(f"{f}: no such recording; a radiance? Give --radiance once per value "
-                 f"(--radiance {radiance[0]:g} --radiance {f})")
+        if f.exists():
+            continue
+        try:
+            float(str(f))
+        except ValueError:
+            continue
+        fail(f"{f}: no such recording; a radiance? Give --radiance once per value "
+             f"(--radiance {radiance[0]:g} --radiance {f})")
     if len(radiance) not in (1, len(flats)):
         fail(f"--radiance: give one value, or one per recording ({len(flats)}); got "
              f"{len(radiance)}")
@@ -86,10 +91,3 @@ def calibrate_thresholds(
         + (f"; panel curves {sorted(cal.panel_curves)}" if cal.panel_curves else "")
         + f" -> {out}")
 
-
-def _is_number(text: str) -> bool:
-    try:
-        float(text)
-    except ValueError:
-        return False
-    return True
