@@ -172,7 +172,7 @@ def test_evaluate_ml_fast_beside_ml_with_the_same_calibration() -> None:
                        rig=rig, methods=(ML_FAST,))
 
 
-def test_finite_image_counts_the_scenes_holes_apart_from_the_padding(
+def test_finite_image_counts_the_measured_pixels_holes_apart(
         caplog: pytest.LogCaptureFixture) -> None:
     # a 2x4 image whose outer columns are padding: one NaN inside the scene, two outside,
     # one infinity; NaN -> 0, infinity -> the largest finite value (5)
@@ -183,7 +183,7 @@ def test_finite_image_counts_the_scenes_holes_apart_from_the_padding(
         out, n = finite_image(img, name="scene ml", region=region)
     assert n == 4
     np.testing.assert_array_equal(out, [[0, 1, 0, 5], [0, 2, 5, 3]])
-    assert "scene ml: 1 of the scene's 4 pixels without an estimate" in caplog.text
-    assert "(and 2 around the scene), 1 infinite" in caplog.text
+    assert "scene ml: 1 of the 4 pixels measured without an estimate" in caplog.text
+    assert "(and 2 not measured), 1 infinite" in caplog.text
     with pytest.raises(ValueError, match="region's shape"):
         finite_image(img, region=region[:, :2])

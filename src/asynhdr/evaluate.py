@@ -228,7 +228,7 @@ def evaluate_scene(
         else:
             img = reconstruct(rec, method=m, k=k, cmap=cmap,
                               ml_options={"out": ml_out} if m == "ml" else None)[-1]
-        images[m] = finite_image(img, name=f"{name} {m}", region=mask)[0]
+        images[m] = finite_image(img, name=f"{name} {m}", region=valid)[0]
         tick(f"{name}: reconstruct", i + 1, len(methods))
     n_events = int(rec.events.size)
     filled = few = 0

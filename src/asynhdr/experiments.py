@@ -135,9 +135,9 @@ def finite_image(image: np.ndarray, *, name: str = "image",
     pixel without an estimate) becomes 0, a hole that the metrics charge in full;
     infinity (an overflowing ``exp``) becomes the image's largest finite value.
 
-    ``region``: the pixels that hold the scene (a boolean mask of the image's shape); the
-    warning then counts the holes in it apart from those around it (a padded scene's
-    border, where nothing is measured)."""
+    ``region``: the pixels that are measured (a boolean mask of the image's shape); the
+    warning then counts the holes in it apart from the others (a padded scene's border,
+    pixels of no light)."""
     img = np.asarray(image)
     bad = ~np.isfinite(img)
     n = int(bad.sum())
@@ -158,8 +158,8 @@ def finite_image(image: np.ndarray, *, name: str = "image",
             raise ValueError(f"finite_image: region's shape {inside.shape} is not the "
                              f"image's {img.shape}")
         n_in = int(np.count_nonzero(nan & inside))
-        logger.warning("%s: %d of the scene's %d pixels without an estimate (NaN) set to 0 "
-                       "(and %d around the scene), %d infinite ones to the image's largest "
+        logger.warning("%s: %d of the %d pixels measured without an estimate (NaN) set to "
+                       "0 (and %d not measured), %d infinite ones to the image's largest "
                        "finite value", name, n_in, int(inside.sum()), n_nan - n_in, n_inf)
     return out, n
 
