@@ -1023,6 +1023,28 @@ def test_fast_fit_check_finds_the_optimum_a_quarter_below() -> None:
     assert abs(err) < 3.0 * sd
 
 
+def test_fast_fit_check_finds_the_optimum_a_factor_e_above() -> None:
+    # the 11 events of a pixel at 22.1 lux, beside L_const / 2 (MtTamWest through
+    # `asynhdr evaluate --preset imx636 --designed`, second cycle, row 420, column 307),
+    # thresholds held at the scenes' calibration: Newton's method stops in an optimum
+    # 1.0 below the truth, stating 0.047; the check's point 1.0 above sends the pixel to
+    # the full fit, which finds the truth's
+    rig = default_rig("imx636")
+    t = [21830, 27864, 73047, 75352, 85047, 105370, 111276, 117250, 133584, 160660, 163668]
+    ev = np.zeros(len(t), EVENT_DTYPE)
+    ev["t"] = t
+    ev["p"] = [-1, -1, 1, 1, 1, 1, -1, -1, -1, 1, 1]
+    pri = ml.thresholds_prior(IMX636, width=1, height=1, c_on=np.array([[0.26914]]),
+                              c_off=np.array([[0.28078]]), sigma=0.0022)
+    res = ml.estimate(ev, width=1, height=1, starts_us=np.array([0]),
+                      model=ml.ml_model(rig, IMX636), priors=pri, fast=True)
+    assert res.full_fits is not None and int(res.full_fits[0]) == 1
+    err = math.log(float(res.radiance[0, 0, 0]) / 22.1043)
+    sd = float(res.sigma_log[0, 0, 0])
+    assert int(res.flags[0, 0, 0]) == 0 and sd < 0.1
+    assert abs(err) < 3.0 * sd
+
+
 @pytest.mark.parametrize(("cutoff_hz", "refractory_us"),
                          [(0.0, 0.0), (0.0, 40.0), (3000.0, 0.0), (3000.0, 40.0)])
 def test_fast_fit_agrees_with_the_full_fit_for_each_kind_of_model(

@@ -2089,11 +2089,12 @@ _FAST_ITER = 12
 _FAST_TOL = 0.1
 """... until a step is below this share of the fit's standard deviation (or of the full
 fit's tolerance, :data:`_TOL_G`, for a fit more precise than that)."""
-_FAST_PROBES = (-0.25, 0.25, -0.5, 0.5, -1.0, -2.0)
+_FAST_PROBES = (-0.25, 0.25, -0.5, 0.5, -1.0, 1.0, -2.0)
 """... and where the held thresholds' likelihood is higher at one of these distances from
-the fast fit (by :data:`_PROBE_MARGIN`). Newton's method from a start too bright stops
-in optima 0.3 to 2.9 above the truth's (docs/ml.md): the points 0.25 away nearest the
-fit see an optimum 0.3 away in ``ln L`` that those 0.5 away step over."""
+the fast fit (by :data:`_PROBE_MARGIN`). Newton's method stops in optima 0.3 to 2.9
+above the truth's from a start too bright, and about 1.0 below it beside ``L_const / 2``
+(docs/ml.md): the points 0.25 away see an optimum 0.3 away in ``ln L`` that those 0.5
+away step over, and the point 1.0 above the one 1.0 below."""
 _FAST_OUTLIER_Z2 = 9.0
 """... with the outlier weights from the first step under one standard deviation on, when
 an event lies three deviations off."""
