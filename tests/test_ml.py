@@ -998,48 +998,41 @@ def test_fast_fit_recovers_radiance_within_stated_uncertainty(preset: str) -> No
     np.testing.assert_allclose(np.mean(res.radiance[-1], axis=1), levels, rtol=0.02)
 
 
-def test_fast_fit_check_finds_the_optimum_a_quarter_below() -> None:
-    # the 26 events of a pixel at 1.35 lux (the bench's chart, seed 0, second cycle, row
-    # 123, column 155), thresholds held at a calibration's (each 1 % off, stated 0.005):
-    # Newton's method from the net change's start stops in an optimum 0.30 above the
-    # truth, stating 0.035, and 33 above the truth's in -2 ln L. The check's points 0.5
-    # away miss it (one lands on the truth's steep side); the one 0.25 below sends the
-    # pixel to the full fit, which finds the truth's optimum
-    rig = default_rig("imx636")
-    t = [20362, 23411, 27576, 33225, 39999, 47182, 55993, 71475, 72911, 74071, 75049, 76241,
-         78706, 110753, 114125, 118396, 124455, 131148, 134264, 142483, 161878, 163272,
-         164348, 165259, 166564, 169754]
-    ev = np.zeros(len(t), EVENT_DTYPE)
-    ev["t"] = t
-    ev["p"] = [-1] * 7 + [1] * 6 + [-1] * 5 + [1, -1] + [1] * 6
-    pri = ml.thresholds_prior(IMX636, width=1, height=1, c_on=np.array([[0.26442]]),
-                              c_off=np.array([[0.24450]]), sigma=0.005)
-    res = ml.estimate(ev, width=1, height=1, starts_us=np.array([0]),
-                      model=ml.ml_model(rig, IMX636), priors=pri, fast=True)
-    assert res.full_fits is not None and int(res.full_fits[0]) == 1
-    err = math.log(float(res.radiance[0, 0, 0]) / 1.350314)
-    sd = float(res.sigma_log[0, 0, 0])
-    assert int(res.flags[0, 0, 0]) == 0 and sd < 0.1
-    assert abs(err) < 3.0 * sd
+# Pixels whose fast fit (thresholds held at a calibration's) stops in another optimum that
+# only one of the check's points sees; the check sends each to the full fit, which finds
+# the truth's. ``(events' times, polarities, c_on, c_off, stated spread, radiance)``:
+_CHECK_CASES = {
+    # 1.35 lux (the bench's chart, seed 0, second cycle, row 123, column 155; thresholds
+    # each 1 % off, stated 0.005): Newton's method stops 0.30 above the truth, stating
+    # 0.035, 33 above the truth's optimum in -2 ln L; the points 0.5 away miss it (the one
+    # below lands on the truth's steep side), the one 0.25 below does not
+    "a quarter below": (
+        [20362, 23411, 27576, 33225, 39999, 47182, 55993, 71475, 72911, 74071, 75049,
+         76241, 78706, 110753, 114125, 118396, 124455, 131148, 134264, 142483, 161878,
+         163272, 164348, 165259, 166564, 169754],
+        [-1] * 7 + [1] * 6 + [-1] * 5 + [1, -1] + [1] * 6, 0.26442, 0.24450, 0.005, 1.350314),
+    # 22.1 lux, beside L_const / 2 (MtTamWest through `asynhdr evaluate --preset imx636
+    # --designed`, second cycle, row 420, column 307; the scenes' calibration): Newton's
+    # method stops 1.0 below the truth, stating 0.047; the point 1.0 above sees the truth
+    "a factor e above": (
+        [21830, 27864, 73047, 75352, 85047, 105370, 111276, 117250, 133584, 160660, 163668],
+        [-1, -1, 1, 1, 1, 1, -1, -1, -1, 1, 1], 0.26914, 0.28078, 0.0022, 22.1043),
+}
 
 
-def test_fast_fit_check_finds_the_optimum_a_factor_e_above() -> None:
-    # the 11 events of a pixel at 22.1 lux, beside L_const / 2 (MtTamWest through
-    # `asynhdr evaluate --preset imx636 --designed`, second cycle, row 420, column 307),
-    # thresholds held at the scenes' calibration: Newton's method stops in an optimum
-    # 1.0 below the truth, stating 0.047; the check's point 1.0 above sends the pixel to
-    # the full fit, which finds the truth's
-    rig = default_rig("imx636")
-    t = [21830, 27864, 73047, 75352, 85047, 105370, 111276, 117250, 133584, 160660, 163668]
+@pytest.mark.parametrize("case", sorted(_CHECK_CASES))
+def test_fast_fit_check_finds_the_truths_optimum(case: str) -> None:
+    t, p, c_on, c_off, sigma, truth = _CHECK_CASES[case]
     ev = np.zeros(len(t), EVENT_DTYPE)
     ev["t"] = t
-    ev["p"] = [-1, -1, 1, 1, 1, 1, -1, -1, -1, 1, 1]
-    pri = ml.thresholds_prior(IMX636, width=1, height=1, c_on=np.array([[0.26914]]),
-                              c_off=np.array([[0.28078]]), sigma=0.0022)
+    ev["p"] = p
+    pri = ml.thresholds_prior(IMX636, width=1, height=1, c_on=np.array([[c_on]]),
+                              c_off=np.array([[c_off]]), sigma=sigma)
     res = ml.estimate(ev, width=1, height=1, starts_us=np.array([0]),
-                      model=ml.ml_model(rig, IMX636), priors=pri, fast=True)
+                      model=ml.ml_model(default_rig("imx636"), IMX636), priors=pri,
+                      fast=True)
     assert res.full_fits is not None and int(res.full_fits[0]) == 1
-    err = math.log(float(res.radiance[0, 0, 0]) / 22.1043)
+    err = math.log(float(res.radiance[0, 0, 0]) / truth)
     sd = float(res.sigma_log[0, 0, 0])
     assert int(res.flags[0, 0, 0]) == 0 and sd < 0.1
     assert abs(err) < 3.0 * sd
