@@ -90,4 +90,3 @@ def calibrate_thresholds(
         f"{cal.how['dead_pixels']:,} dead pixels (no event in any cycle)"
         + (f"; panel curves {sorted(cal.panel_curves)}" if cal.panel_curves else "")
         + f" -> {out}")
-
