@@ -1698,6 +1698,14 @@ def _information(g, u, con, coff, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, 
     return _solve4(h, bvec, x, lmat, wy, wz)
 
 
+@nb.njit(cache=True, inline="always", error_model="numpy")
+def _mixture_weight(o, o_fit):
+    """The weight of a point of the likelihood's profile (``-2 ln L`` there: ``o``) in the
+    mixture that states a fit's spread: its likelihood relative to the fit's (``o_fit``),
+    :data:`_PROBE_MARGIN` likelier at most."""
+    return math.exp(-0.5 * max(o - o_fit, -_PROBE_MARGIN))
+
+
 @nb.njit(cache=True, error_model="numpy")
 def _probe(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0, dlog,
            locate, wmax, g_lo, g_hi, c1, c2, s1, s2, su, mu_u, gp, sgp, h, bvec, x, lmat, wy,
@@ -1779,7 +1787,7 @@ def _probe(res, lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, r
             d = gs[q] - res[0]
             if not obj[q] < np.inf or d * d / v - (obj[q] - o_fit) <= _MODE_EXCESS:
                 continue
-            w = math.exp(-0.5 * max(obj[q] - o_fit, -_PROBE_MARGIN))
+            w = _mixture_weight(obj[q], o_fit)
             sw += w
             m1 += w * d
             m2 += w * d * d
@@ -1845,7 +1853,7 @@ def _few_events_kernel(todo, off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v
                 th[2] = res[4]
             o = _profile_from_values(buf, n, q, lam, c1, c2, s1, s2, su, mu_u, th)
             d = gs[q] - g
-            w = math.exp(-0.5 * max(o - o_fit, -_PROBE_MARGIN))
+            w = _mixture_weight(o, o_fit)
             sw += w
             m2 += w * d * d
         var = m2 / sw
