@@ -583,6 +583,18 @@ def _eval_slot(mode, j, w, e, s0, s1, s2, s3, rows, dlog):
 
 
 @nb.njit(cache=True, inline="always", error_model="numpy")
+def _eval_row(mode, j, e, s0, s1, s2, s3, rows):
+    """``(V, dV/dt)`` of :func:`_eval_slot` at grid row ``j``'s own ``g`` (mode 1: one row
+    read), or at ``L = e`` (mode 0)."""
+    if mode == 0:
+        irr = s0 * e + s1
+        return math.log(irr), (s2 * e + s3) / irr
+    k = int(s0)
+    d = rows[j, k, 1]
+    return rows[j, k, 0] + s1 * d, d * s2
+
+
+@nb.njit(cache=True, inline="always", error_model="numpy")
 def _eval(mode, j, w, e, m, end, exact, v0a, v0b, rows, dlog, locate):
     """``(V, dV/dg, dV/dt)`` at whole µs slot ``m`` (``end``: the dead time's end; ``m < 0``:
     the cycle start) for the ``g`` that :func:`_at_g` gave ``(j, w, e)``."""
@@ -2102,7 +2114,9 @@ _FAST_PROBES = (-0.25, 0.25, -0.5, 0.5, -1.0, 1.0, -2.0)
 the fast fit (by :data:`_PROBE_MARGIN`). Newton's method stops in optima 0.3 to 2.9
 above the truth's from a start too bright, and about 1.0 below it beside ``L_const / 2``
 (docs/ml.md): the points 0.25 away see an optimum 0.3 away in ``ln L`` that those 0.5
-away step over, and the point 1.0 above the one 1.0 below."""
+away step over, and the point 1.0 above the one 1.0 below. With the photoreceptor's
+table, each point is the table's grid row nearest it (within ``dlog / 2``), whose values
+are read from one row instead of interpolated between two (:func:`_fast_check`)."""
 _FAST_OUTLIER_Z2 = 9.0
 """... with the outlier weights from the first step under one standard deviation on, when
 an event lies three deviations off."""
@@ -2246,10 +2260,17 @@ def _fast_check(mode, gs, nk, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0
     """The events' ``-2 sum ln(f_i + lambda)`` (:func:`_fit_nll`'s density) under
     :func:`_fast_pass`'s model, at each of the ``nk`` points ``gs[:nk]``, into ``nl[:nk]``:
     one pass over the slots ``sl`` (:func:`_read_slots`) for all points (``ws``:
-    ``(nk, 6)`` work, ``prod``: ``(nk,)``)."""
+    ``(nk, 6)`` work, ``prod``: ``(nk,)``). With the table (mode 1) the points after the
+    first (the fit's own) are moved to their nearest grid rows in ``gs``, each read from
+    its row alone (:func:`_eval_row`)."""
     nr = rows.shape[0]
     for k in range(nk):
+        if mode == 1 and k > 0:
+            # a probe at its nearest grid row: one row read per event
+            gs[k] = g0 + dlog * min(max(round((gs[k] - g0) / dlog), 0), nr - 2)
         j, w, e = _at_g(mode, gs[k], g0, dlog, nr)
+        if k > 0:
+            w = 0.0
         vs, _, _ = _eval(mode, j, w, e, -1, False, exact, v0a, v0b, rows, dlog, locate)
         ws[k, 0] = j
         ws[k, 1] = w
@@ -2272,14 +2293,21 @@ def _fast_check(mode, gs, nk, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0
             j = int(ws[k, 0])
             w = ws[k, 1]
             e = ws[k, 2]
-            vc, _, dtc = _eval_slot(mode, j, w, e, a0, a1, a2, a3, rows, dlog)
+            if k == 0:
+                vc, _, dtc = _eval_slot(mode, j, w, e, a0, a1, a2, a3, rows, dlog)
+            else:
+                vc, dtc = _eval_row(mode, j, e, a0, a1, a2, a3, rows)
             if dead:
                 if first:
                     ref = ws[k, 3] + mu_u
                     var = sr2 + dtc * dtc * tq2 + su2
                 else:
-                    ref, _, dte = _eval_slot(mode, j, w, e, sl[r, 4], sl[r, 5], sl[r, 6],
-                                             sl[r, 7], rows, dlog)
+                    if k == 0:
+                        ref, _, dte = _eval_slot(mode, j, w, e, sl[r, 4], sl[r, 5],
+                                                 sl[r, 6], sl[r, 7], rows, dlog)
+                    else:
+                        ref, dte = _eval_row(mode, j, e, sl[r, 4], sl[r, 5], sl[r, 6],
+                                             sl[r, 7], rows)
                     var = sr2 + dtc * dtc * tq2 + dte * dte * eq2
             else:
                 if first:
