@@ -1038,6 +1038,58 @@ def test_fast_fit_check_finds_the_truths_optimum(case: str) -> None:
     assert abs(err) < 3.0 * sd
 
 
+@pytest.mark.parametrize("refractory_us", [0.0, 40.0])
+def test_fast_check_reads_its_points_at_table_rows_as_the_model_there(
+        refractory_us: float) -> None:
+    # the check's points after the first are moved to the table's nearest grid rows and
+    # read from that row alone; the first (the fit's own) is interpolated between two.
+    # At a row both readings are the same model: the same -2 ln L to rounding, with a
+    # dead time and without one
+    sensor = get_preset("ideal").with_(name="kind", cutoff_hz=3000.0,
+                                       refractory_us=refractory_us,
+                                       reset_noise_sigma=0.01 if refractory_us else 0.0)
+    rig = default_rig("imx636")
+    m = ml.ml_model(rig, sensor)
+    assert m.mode == 1 and m.dead == (refractory_us > 0)
+    truth = 1.35
+    ev = simulate(flat_field(width=1, height=1, radiance=truth), rig=rig, sensor=sensor,
+                  n_cycles=1, rng=0, sensor_seed=1).events
+    ev = ev[ev["t"] < rig.cycle_starts_us(1)[0] + m.window_us]
+    n = ev.size
+    assert n >= 10
+    tt = (ev["t"] - rig.cycle_starts_us(1)[0]).astype(np.int32)
+    pp = ev["p"].astype(np.int8)
+    c_on, c_off = (float(c[0, 0]) for c in draw_thresholds(sensor, width=1, height=1,
+                                                            rng=np.random.default_rng(1)))
+    sl = np.empty((n, 8))
+    ml._read_slots(m.mode, 0, n, tt, m.dead, m.exact, m.locate, np.int64(m.window_us), sl)
+    tq2 = m.jitter_us ** 2 + m.res_us ** 2 / 12.0
+    eq2 = m.res_us ** 2 / 12.0 + (m.jitter_us ** 2 if m.dead else 0.0)
+    su, mu_u = ml._u_prior(c_on, c_off, 0.0)
+
+    def check(gs: list[float]) -> tuple[np.ndarray, np.ndarray]:
+        g = np.array(gs, dtype=np.float64)
+        k = g.size
+        nl = np.empty(k)
+        ml._fast_check(m.mode, g, k, 0, n, sl, pp, m.dead, m.reset_sigma ** 2, tq2, eq2,
+                       m.noise_rate_per_us, m.exact, m.v0[0], m.v0[1], m.rows, m.g0,
+                       m.dlog, m.locate, c_on, c_off, mu_u, su * su, np.empty((k, 6)), nl,
+                       np.empty(k))
+        return g, nl
+
+    row = m.g0 + round((math.log(truth) - m.g0) / m.dlog) * m.dlog  # the row nearest L
+    g, nl = check([row, row, row - 0.25])
+    assert g[1] == pytest.approx(row, abs=1e-12)
+    assert nl[1] == pytest.approx(nl[0], rel=1e-9, abs=1e-9)
+    # a point between rows goes to the nearest, and reads there as the fit's own would
+    moved = g[2]
+    assert abs(moved - (row - 0.25)) <= 0.5 * m.dlog + 1e-12
+    assert (moved - m.g0) / m.dlog == pytest.approx(round((moved - m.g0) / m.dlog), abs=1e-9)
+    _, nl2 = check([moved])
+    assert nl[2] == pytest.approx(nl2[0], rel=1e-9, abs=1e-9)
+    assert nl[2] != pytest.approx(nl[0], abs=1.0)  # a quarter away is another likelihood
+
+
 @pytest.mark.parametrize(("cutoff_hz", "refractory_us"),
                          [(0.0, 0.0), (0.0, 40.0), (3000.0, 0.0), (3000.0, 40.0)])
 def test_fast_fit_agrees_with_the_full_fit_for_each_kind_of_model(
