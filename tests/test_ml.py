@@ -1077,10 +1077,14 @@ def test_fast_check_reads_its_points_at_table_rows_as_the_model_there(
                        np.empty(k))
         return g, nl
 
-    row = m.g0 + round((math.log(truth) - m.g0) / m.dlog) * m.dlog  # the row nearest L
+    near = round((math.log(truth) - m.g0) / m.dlog)  # the row nearest L
+    for j in range(near - 15, near + 16):  # g0 + j dlog floors to j - 1 for some
+        at = m.g0 + j * m.dlog
+        g, nl = check([at, at])
+        assert g[1] == pytest.approx(at, abs=1e-12)
+        assert nl[1] == pytest.approx(nl[0], rel=1e-9, abs=1e-9), j
+    row = m.g0 + near * m.dlog
     g, nl = check([row, row, row - 0.25])
-    assert g[1] == pytest.approx(row, abs=1e-12)
-    assert nl[1] == pytest.approx(nl[0], rel=1e-9, abs=1e-9)
     # a point between rows goes to the nearest, and reads there as the fit's own would
     moved = g[2]
     assert abs(moved - (row - 0.25)) <= 0.5 * m.dlog + 1e-12

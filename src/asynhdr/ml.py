@@ -2266,11 +2266,14 @@ def _fast_check(mode, gs, nk, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0
     nr = rows.shape[0]
     for k in range(nk):
         if mode == 1 and k > 0:
-            # a probe at its nearest grid row: one row read per event
-            gs[k] = g0 + dlog * min(max(round((gs[k] - g0) / dlog), 0), nr - 2)
-        j, w, e = _at_g(mode, gs[k], g0, dlog, nr)
-        if k > 0:
+            # a probe at its nearest grid row: one row read per event (the row's index
+            # kept, as g0 + j dlog need not floor back to j)
+            j = min(max(round((gs[k] - g0) / dlog), 0), nr - 2)
             w = 0.0
+            e = 0.0
+            gs[k] = g0 + dlog * j
+        else:
+            j, w, e = _at_g(mode, gs[k], g0, dlog, nr)
         vs, _, _ = _eval(mode, j, w, e, -1, False, exact, v0a, v0b, rows, dlog, locate)
         ws[k, 0] = j
         ws[k, 1] = w
