@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -15,7 +16,7 @@ from asynhdr.events import EVENT_DTYPE, Recording
 from asynhdr.reconstruct import CycleWindows, reconstruct, windows_for
 from asynhdr.rig import Rig
 from asynhdr.scene import flat_field
-from asynhdr.sensor.params import get_preset
+from asynhdr.sensor.params import SensorParams, get_preset
 from asynhdr.simulate import draw_thresholds, simulate
 
 QUIET = dict(leak_rate_hz=0.0, shot_noise_rate_hz=0.0, hot_pixel_fraction=0.0,
@@ -1038,6 +1039,47 @@ def test_fast_fit_check_finds_the_truths_optimum(case: str) -> None:
     assert abs(err) < 3.0 * sd
 
 
+def _fast_checker(sensor: SensorParams, truth: float, seed: int = 1
+                  ) -> tuple[ml.MlModel, Callable[[list[float], bool], tuple[np.ndarray,
+                                                                           np.ndarray]],
+                             float, int]:
+    """The fast fit's check (``ml._fast_check``) on one simulated flat pixel of radiance
+    ``truth``, with the imx636 preset's designed rig: ``check(points, prune)`` gives the
+    points as read (probes at their grid rows) and their ``-2 ln L``; then the least the
+    events can add to such a sum (``ml._least_terms``) and how many they are."""
+    rig = default_rig("imx636")
+    m = ml.ml_model(rig, sensor)
+    drawn = draw_thresholds(sensor, width=1, height=1, rng=np.random.default_rng(seed))
+    ev = simulate(flat_field(width=1, height=1, radiance=truth), rig=rig, sensor=sensor,
+                  n_cycles=1, rng=seed, sensor_seed=seed, thresholds=drawn).events
+    ev = ev[ev["t"] < rig.cycle_starts_us(1)[0] + m.window_us]
+    n = ev.size
+    assert n >= 10
+    tt = (ev["t"] - rig.cycle_starts_us(1)[0]).astype(np.int32)
+    pp = ev["p"].astype(np.int8)
+    c_on, c_off = (float(c[0, 0]) for c in drawn)
+    sl = np.empty((n, 8))
+    ml._read_slots(m.mode, 0, n, tt, m.dead, m.exact, m.locate, np.int64(m.window_us), sl)
+    tq2 = m.jitter_us ** 2 + m.res_us ** 2 / 12.0
+    eq2 = m.res_us ** 2 / 12.0 + (m.jitter_us ** 2 if m.dead else 0.0)
+    su, mu_u = ml._u_prior(c_on, c_off, 0.0)
+    dmax = np.abs(m.rows[:, :, 1]).max(axis=0).astype(np.float64)
+
+    def check(gs: list[float], prune: bool) -> tuple[np.ndarray, np.ndarray]:
+        g = np.array(gs, dtype=np.float64)
+        k = g.size
+        nl = np.empty(k)
+        ml._fast_check(m.mode, g, k, 0, n, sl, pp, m.dead, m.reset_sigma ** 2, tq2, eq2,
+                       m.noise_rate_per_us, m.exact, m.v0[0], m.v0[1], m.rows, m.g0,
+                       m.dlog, m.locate, c_on, c_off, mu_u, su * su, np.empty((k, 7)), nl,
+                       np.empty(k), prune, dmax, np.empty(n + 1))
+        return g, nl
+
+    tail = np.empty(n + 1)
+    ml._least_terms(m.mode, 0, n, sl, m.reset_sigma ** 2, tq2, m.noise_rate_per_us, dmax, tail)
+    return m, check, float(tail[0]), n
+
+
 @pytest.mark.parametrize("refractory_us", [0.0, 40.0])
 def test_fast_check_reads_its_points_at_table_rows_as_the_model_there(
         refractory_us: float) -> None:
@@ -1048,50 +1090,55 @@ def test_fast_check_reads_its_points_at_table_rows_as_the_model_there(
     sensor = get_preset("ideal").with_(name="kind", cutoff_hz=3000.0,
                                        refractory_us=refractory_us,
                                        reset_noise_sigma=0.01 if refractory_us else 0.0)
-    rig = default_rig("imx636")
-    m = ml.ml_model(rig, sensor)
-    assert m.mode == 1 and m.dead == (refractory_us > 0)
     truth = 1.35
-    ev = simulate(flat_field(width=1, height=1, radiance=truth), rig=rig, sensor=sensor,
-                  n_cycles=1, rng=0, sensor_seed=1).events
-    ev = ev[ev["t"] < rig.cycle_starts_us(1)[0] + m.window_us]
-    n = ev.size
-    assert n >= 10
-    tt = (ev["t"] - rig.cycle_starts_us(1)[0]).astype(np.int32)
-    pp = ev["p"].astype(np.int8)
-    c_on, c_off = (float(c[0, 0]) for c in draw_thresholds(sensor, width=1, height=1,
-                                                            rng=np.random.default_rng(1)))
-    sl = np.empty((n, 8))
-    ml._read_slots(m.mode, 0, n, tt, m.dead, m.exact, m.locate, np.int64(m.window_us), sl)
-    tq2 = m.jitter_us ** 2 + m.res_us ** 2 / 12.0
-    eq2 = m.res_us ** 2 / 12.0 + (m.jitter_us ** 2 if m.dead else 0.0)
-    su, mu_u = ml._u_prior(c_on, c_off, 0.0)
-
-    def check(gs: list[float]) -> tuple[np.ndarray, np.ndarray]:
-        g = np.array(gs, dtype=np.float64)
-        k = g.size
-        nl = np.empty(k)
-        ml._fast_check(m.mode, g, k, 0, n, sl, pp, m.dead, m.reset_sigma ** 2, tq2, eq2,
-                       m.noise_rate_per_us, m.exact, m.v0[0], m.v0[1], m.rows, m.g0,
-                       m.dlog, m.locate, c_on, c_off, mu_u, su * su, np.empty((k, 6)), nl,
-                       np.empty(k))
-        return g, nl
-
+    m, check, _, _ = _fast_checker(sensor, truth)
+    assert m.mode == 1 and m.dead == (refractory_us > 0)
     near = round((math.log(truth) - m.g0) / m.dlog)  # the row nearest L
     for j in range(near - 15, near + 16):  # g0 + j dlog floors to j - 1 for some
         at = m.g0 + j * m.dlog
-        g, nl = check([at, at])
+        g, nl = check([at, at], False)
         assert g[1] == pytest.approx(at, abs=1e-12)
         assert nl[1] == pytest.approx(nl[0], rel=1e-9, abs=1e-9), j
     row = m.g0 + near * m.dlog
-    g, nl = check([row, row, row - 0.25])
+    g, nl = check([row, row, row - 0.25], False)
     # a point between rows goes to the nearest, and reads there as the fit's own would
     moved = g[2]
     assert abs(moved - (row - 0.25)) <= 0.5 * m.dlog + 1e-12
     assert (moved - m.g0) / m.dlog == pytest.approx(round((moved - m.g0) / m.dlog), abs=1e-9)
-    _, nl2 = check([moved])
+    _, nl2 = check([moved], False)
     assert nl[2] == pytest.approx(nl2[0], rel=1e-9, abs=1e-9)
     assert nl[2] != pytest.approx(nl[0], abs=1.0)  # a quarter away is another likelihood
+
+
+@pytest.mark.parametrize("truth", [0.6, 20.0, 3000.0, 1e5])
+def test_fast_check_leaves_out_only_points_it_can_bound_above_the_fit(truth: float) -> None:
+    # pruned, a probe leaves the check's pass once the least its remaining events can add
+    # keeps it above the fit's -2 ln L less the margin: the bound it reports is at most its
+    # whole sum and at least that floor, and its decision is the unpruned one
+    sensor = get_preset("ideal").with_(name="kind", cutoff_hz=3000.0, refractory_us=40.0,
+                                       reset_noise_sigma=0.01, jitter_sigma_us=2.0)
+    _, check, least, n = _fast_checker(sensor, truth, seed=3)
+    # the fit's point: the likeliest of a scan 0.02 apart about the truth
+    scan = [math.log(truth) + 0.02 * i for i in range(-50, 51)]
+    # the least the events can add: below every point's sum, the fit's by less than the
+    # events' chi-square and a few units each (their timing noise at its least)
+    nls = [check([x], False)[1][0] for x in scan]
+    assert least <= min(nls)
+    assert least >= min(nls) - 5.0 * n
+    g = scan[int(np.argmin(nls))]
+    points = [g] + [g + d for d in ml._FAST_PROBES]
+    _, whole = check(points, False)
+    _, pruned = check(points, True)
+    assert pruned[0] == whole[0]
+    floor = whole[0] - ml._PROBE_MARGIN
+    left = 0
+    for k in range(1, len(points)):
+        if pruned[k] == whole[k]:
+            continue
+        left += 1
+        assert floor <= pruned[k] <= whole[k] + 1e-9 * abs(whole[k]), k
+        assert (pruned[k] < floor) == (whole[k] < floor)
+    assert left >= 1  # at least the point 2.0 below leaves early
 
 
 @pytest.mark.parametrize(("cutoff_hz", "refractory_us"),

@@ -2256,13 +2256,16 @@ def _fast_term(mode, jg, wg, eg, sl, r, on, vc, dgc, dtc, ref, dref, var, c1, c2
 
 @nb.njit(cache=True, error_model="numpy")
 def _fast_check(mode, gs, nk, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
-                rows, g0, dlog, locate, c1, c2, mu_u, su2, ws, nl, prod):
+                rows, g0, dlog, locate, c1, c2, mu_u, su2, ws, nl, prod, prune, dmax, tail):
     """The events' ``-2 sum ln(f_i + lambda)`` (:func:`_fit_nll`'s density) under
-    :func:`_fast_pass`'s model, at each of the ``nk`` points ``gs[:nk]``, into ``nl[:nk]``:
-    one pass over the slots ``sl`` (:func:`_read_slots`) for all points (``ws``:
-    ``(nk, 6)`` work, ``prod``: ``(nk,)``). With the table (mode 1) the points after the
-    first (the fit's own) are moved to their nearest grid rows in ``gs``, each read from
-    its row alone (:func:`_eval_row`)."""
+    :func:`_fast_pass`'s model, at each of the ``nk`` points ``gs[:nk]``, into ``nl[:nk]``
+    (``ws``: ``(nk, 7)`` work, ``prod``: ``(nk,)``). With the table (mode 1) the points after
+    the first (the fit's own) are moved to their nearest grid rows in ``gs``, each read from
+    its row alone (:func:`_eval_row`). The first point is summed over all events, then the
+    others in one pass over the slots ``sl`` (:func:`_read_slots`); with ``prune``, a point
+    leaves that pass once its sum is sure to end at least :data:`_PROBE_MARGIN` above the
+    first's less (each event adds at least :func:`_least_term`), and ``nl`` holds that
+    bound for it instead: the same decision, a fraction of the events read."""
     nr = rows.shape[0]
     for k in range(nk):
         if mode == 1 and k > 0:
@@ -2279,8 +2282,53 @@ def _fast_check(mode, gs, nk, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0
         ws[k, 1] = w
         ws[k, 2] = e
         ws[k, 3] = vs
+        ws[k, 6] = 1.0  # in the pass
         prod[k] = 1.0
         nl[k] = 0.0
+    _check_points(mode, 0, 1, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, rows, dlog, c1, c2,
+                  mu_u, su2, ws, nl, prod, -np.inf, tail)
+    if nk > 1:
+        floor = -np.inf
+        if prune:
+            floor = nl[0] - _PROBE_MARGIN
+            _least_terms(mode, lo, hi, sl, sr2, tq2, lam, dmax, tail)
+        _check_points(mode, 1, nk, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, rows, dlog, c1,
+                      c2, mu_u, su2, ws, nl, prod, floor, tail)
+
+
+_CHECK_EVERY = 4
+""":func:`_fast_check` looks which of its points may leave its pass after every this many
+events."""
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _least_terms(mode, lo, hi, sl, sr2, tq2, lam, dmax, tail):
+    """``tail[r]``: the least that events ``lo + r`` on can add to :func:`_fast_check`'s
+    sum at any ``g``. An event's variance holds at least ``sr2 + (dV/dt)^2 tq2``, and its
+    density ``|dV/dt| / s phi(z)`` rises with ``|dV/dt|``, which is at most ``dmax`` at its
+    table interval times its time scale (mode 1; the table's greatest over its radiances);
+    in mode 0 ``f <= 1 / sqrt(2 pi tq2)`` alone (none without timing noise)."""
+    acc = 0.0
+    tail[hi - lo] = 0.0
+    for r in range(hi - lo - 1, -1, -1):
+        if mode == 1:
+            x = dmax[int(sl[r, 0])] * abs(sl[r, 2])
+            v = sr2 + x * x * tq2
+            f = x / math.sqrt(v) * 0.3989422804014327 if v > 0.0 else np.inf
+        else:
+            f = 0.3989422804014327 / math.sqrt(tq2) if tq2 > 0.0 else np.inf
+        acc -= 2.0 * math.log(max(f + lam, _DENSITY_FLOOR))
+        tail[r] = acc
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _check_points(mode, ka, kb, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, rows, dlog, c1, c2,
+                  mu_u, su2, ws, nl, prod, floor, tail):
+    """:func:`_fast_check`'s sums for points ``ka`` to ``kb - 1``, in one pass over the
+    events; a point whose sum is sure to end at ``floor`` or above (the events after event
+    ``lo + r`` add at least ``tail[r + 1]``, :func:`_least_terms`) leaves it with that
+    bound in ``nl``."""
+    live = kb - ka
     level = 0.0
     for i in range(lo, hi):
         r = i - lo
@@ -2292,7 +2340,9 @@ def _fast_check(mode, gs, nk, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0
         first = r == 0
         if not dead and not first:
             level += step
-        for k in range(nk):
+        for k in range(ka, kb):
+            if ws[k, 6] == 0.0:
+                continue
             j = int(ws[k, 0])
             w = ws[k, 1]
             e = ws[k, 2]
@@ -2333,15 +2383,27 @@ def _fast_check(mode, gs, nk, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0
                 nl[k] -= 2.0 * (math.log(prod[k]) + math.log(d))
                 q = 1.0
             prod[k] = q
-    for k in range(nk):
-        nl[k] -= 2.0 * math.log(prod[k])
+        if floor > -np.inf and (r + 1) % _CHECK_EVERY == 0:
+            for k in range(ka, kb):
+                if ws[k, 6] == 0.0:
+                    continue
+                bound = nl[k] - 2.0 * math.log(prod[k]) + tail[r + 1]
+                if bound >= floor:
+                    ws[k, 6] = 0.0
+                    nl[k] = bound
+                    live -= 1
+            if live == 0:
+                return
+    for k in range(ka, kb):
+        if ws[k, 6] != 0.0:
+            nl[k] -= 2.0 * math.log(prod[k])
 
 
 @nb.njit(cache=True, parallel=True, error_model="numpy")
 def _fast_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0, dlog,
                  locate, wmax, g_lo, g_hi, net_g, net_v, min_events, con0, coff0, scon,
                  scoff, out_g, out_sd, out_con, out_coff, out_flag, u_sd, split, net_v2,
-                 split2, order, out_u, out_full, hold_sd):
+                 split2, order, out_u, out_full, hold_sd, dmax):
     """Every pixel's fast fit (docs/ml.md, "The fast fit"): ``g`` alone, the thresholds
     held at their priors (a calibration's, or learned ones whose spreads are at most
     ``hold_sd``: the others are fitted in full), by Newton's method on the likelihood from
@@ -2360,12 +2422,13 @@ def _fast_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, row
         gs = np.empty(len(_FAST_PROBES) + 1)
         nl = np.empty(len(_FAST_PROBES) + 1)
         prod = np.empty(len(_FAST_PROBES) + 1)
-        ws = np.empty((len(_FAST_PROBES) + 1, 6))
+        ws = np.empty((len(_FAST_PROBES) + 1, 7))
         res, saved, work, scan = _fit_space(g_lo, g_hi)
         n_max = 0
         for px in range(blk * _BLOCK, min(npx, (blk + 1) * _BLOCK)):
             n_max = max(n_max, off[px + 1] - off[px])
         sl = np.empty((n_max, 8))
+        tail = np.empty(n_max + 1)
         for px in range(blk * _BLOCK, min(npx, (blk + 1) * _BLOCK)):
             lo = off[px]
             hi = off[px + 1]
@@ -2435,7 +2498,8 @@ def _fast_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, row
                         gs[nk] = gq
                         nk += 1
                 _fast_check(mode, gs, nk, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0a,
-                            v0b, rows, g0, dlog, locate, c1, c2, mu_u, su * su, ws, nl, prod)
+                            v0b, rows, g0, dlog, locate, c1, c2, mu_u, su * su, ws, nl, prod,
+                            True, dmax, tail)
                 for k in range(1, nk):
                     if nl[k] < nl[0] - _PROBE_MARGIN:
                         poor = True
@@ -3266,6 +3330,7 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
     parts = 1 if progress is None else min(_PROGRESS_PARTS, max(1, npx // _BLOCK))
     edges = np.linspace(0, npx, parts + 1).astype(np.int64)
     full = np.zeros(npx, np.uint8)
+    dmax = np.abs(model.rows[:, :, 1]).max(axis=0).astype(np.float64)
     for a, b in zip(edges[:-1].tolist(), edges[1:].tolist(), strict=True):
         if fast and not fixed:
             _fast_kernel(off[a:b + 1], t, p, model.mode, model.dead, model.reset_sigma ** 2,
@@ -3276,7 +3341,7 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
                          scoff[a:b], out_g[a:b], out_sd[a:b], out_con[a:b], out_coff[a:b],
                          out_flag[a:b], float(start_sigma), np.int64(model.split_us),
                          model.net_v2, np.int64(model.split2_us), block_order(b - a, _BLOCK),
-                         out_u[a:b], full[a:b], float(hold_sd))
+                         out_u[a:b], full[a:b], float(hold_sd), dmax)
             if progress is not None:
                 progress(b)
             continue
