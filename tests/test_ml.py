@@ -1063,7 +1063,7 @@ def _fast_checker(sensor: SensorParams, truth: float, seed: int = 1
     tq2 = m.jitter_us ** 2 + m.res_us ** 2 / 12.0
     eq2 = m.res_us ** 2 / 12.0 + (m.jitter_us ** 2 if m.dead else 0.0)
     su, mu_u = ml._u_prior(c_on, c_off, 0.0)
-    dmax = np.abs(m.rows[:, :, 1]).max(axis=0).astype(np.float64)
+    dmax = ml._steepest_slopes(m.rows)
 
     def check(gs: list[float], prune: bool) -> tuple[np.ndarray, np.ndarray]:
         g = np.array(gs, dtype=np.float64)

@@ -2264,8 +2264,9 @@ def _fast_check(mode, gs, nk, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0
     its row alone (:func:`_eval_row`). The first point is summed over all events, then the
     others in one pass over the slots ``sl`` (:func:`_read_slots`); with ``prune``, a point
     leaves that pass once its sum is sure to end at least :data:`_PROBE_MARGIN` above the
-    first's less (each event adds at least :func:`_least_term`), and ``nl`` holds that
-    bound for it instead: the same decision, a fraction of the events read."""
+    first's less (:func:`_least_terms`, with ``dmax`` from :func:`_steepest_slopes` and
+    ``tail`` work of ``hi - lo + 1``), and ``nl`` holds that bound for it instead: the same
+    decision, a fraction of the events read."""
     nr = rows.shape[0]
     for k in range(nk):
         if mode == 1 and k > 0:
@@ -2299,6 +2300,12 @@ def _fast_check(mode, gs, nk, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0
 _CHECK_EVERY = 4
 """:func:`_fast_check` looks which of its points may leave its pass after every this many
 events."""
+
+
+def _steepest_slopes(rows: np.ndarray) -> np.ndarray:
+    """The photoreceptor table's steepest ``|dV|`` over all its radiances, at each of its
+    time intervals (:func:`_least_terms`)."""
+    return np.abs(np.asarray(rows)[:, :, 1]).max(axis=0).astype(np.float64)
 
 
 @nb.njit(cache=True, error_model="numpy")
@@ -3330,7 +3337,7 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
     parts = 1 if progress is None else min(_PROGRESS_PARTS, max(1, npx // _BLOCK))
     edges = np.linspace(0, npx, parts + 1).astype(np.int64)
     full = np.zeros(npx, np.uint8)
-    dmax = np.abs(model.rows[:, :, 1]).max(axis=0).astype(np.float64)
+    dmax = _steepest_slopes(model.rows)
     for a, b in zip(edges[:-1].tolist(), edges[1:].tolist(), strict=True):
         if fast and not fixed:
             _fast_kernel(off[a:b + 1], t, p, model.mode, model.dead, model.reset_sigma ** 2,
