@@ -177,6 +177,8 @@ _PROFILE_POLISH = 0.05
 """Half the bracket in ``ln L`` of the parabola that places a point the profile walk found
 (:func:`_profile_polish`)."""
 _OUTLIER_Z2 = 16.0
+_INV_SQRT_2PI = 0.3989422804014327
+"""``1 / sqrt(2 pi)``: the standard normal density's peak."""
 _DENSITY_FLOOR = 1e-300
 _THRESHOLD_Z = 2.5
 _SCAN_STEP = 0.2
@@ -633,7 +635,7 @@ def _time_density(z2, slope, iw):
     """An event's density in time, ``phi(z) |dV/dt| / s``, from ``z2 = z^2``, ``slope =
     dV/dt`` at the crossing and ``iw = 1 / s^2``: every fit's likelihood and outlier
     weight."""
-    return math.exp(-0.5 * z2) * abs(slope) * math.sqrt(iw) * 0.3989422804014327
+    return math.exp(-0.5 * z2) * abs(slope) * math.sqrt(iw) * _INV_SQRT_2PI
 
 
 _JACOBIAN_MAX = 10.0
@@ -2321,9 +2323,9 @@ def _least_terms(mode, lo, hi, sl, sr2, tq2, lam, dmax, tail):
         if mode == 1:
             x = dmax[int(sl[r, 0])] * abs(sl[r, 2])
             v = sr2 + x * x * tq2
-            f = x / math.sqrt(v) * 0.3989422804014327 if v > 0.0 else np.inf
+            f = x / math.sqrt(v) * _INV_SQRT_2PI if v > 0.0 else np.inf
         else:
-            f = 0.3989422804014327 / math.sqrt(tq2) if tq2 > 0.0 else np.inf
+            f = _INV_SQRT_2PI / math.sqrt(tq2) if tq2 > 0.0 else np.inf
         acc -= 2.0 * math.log(max(f + lam, _DENSITY_FLOOR))
         tail[r] = acc
 
@@ -2751,7 +2753,7 @@ def _silence(ext, j, c1, c2, s1, s2, u_sd):
     sw = vmax - vmin
     if sd > 0.0:
         z = (mu - sw) / sd
-        exc = sd * math.exp(-0.5 * z * z) * 0.3989422804014327 + (mu - sw) * _cdf(z)
+        exc = sd * math.exp(-0.5 * z * z) * _INV_SQRT_2PI + (mu - sw) * _cdf(z)
     else:
         exc = max(mu - sw, 0.0)
     return exc / max(mu, sw)
