@@ -1063,7 +1063,9 @@ def _fast_checker(sensor: SensorParams, truth: float, seed: int = 1
     tq2 = m.jitter_us ** 2 + m.res_us ** 2 / 12.0
     eq2 = m.res_us ** 2 / 12.0 + (m.jitter_us ** 2 if m.dead else 0.0)
     su, mu_u = ml._u_prior(c_on, c_off, 0.0)
-    dmax = ml._steepest_slopes(m.rows)
+    wmax = np.int64(m.window_us)
+    least = ml._least_slots(m.mode, wmax, m.exact, m.locate, ml._steepest_slopes(m.rows),
+                            m.reset_sigma ** 2, tq2, m.noise_rate_per_us)
 
     def check(gs: list[float], prune: bool) -> tuple[np.ndarray, np.ndarray]:
         g = np.array(gs, dtype=np.float64)
@@ -1071,12 +1073,12 @@ def _fast_checker(sensor: SensorParams, truth: float, seed: int = 1
         nl = np.empty(k)
         ml._fast_check(m.mode, g, k, 0, n, sl, pp, m.dead, m.reset_sigma ** 2, tq2, eq2,
                        m.noise_rate_per_us, m.exact, m.v0[0], m.v0[1], m.rows, m.g0,
-                       m.dlog, m.locate, c_on, c_off, mu_u, su * su, np.empty((k, 7)), nl,
-                       np.empty(k), prune, dmax, np.empty(n + 1))
+                       m.dlog, m.locate, c_on, c_off, mu_u, su * su, nl, prune, least, tt,
+                       wmax, np.empty(n + 1))
         return g, nl
 
     tail = np.empty(n + 1)
-    ml._least_terms(m.mode, 0, n, sl, m.reset_sigma ** 2, tq2, m.noise_rate_per_us, dmax, tail)
+    ml._least_terms(0, n, tt, wmax, least, tail)
     return m, check, float(tail[0]), n
 
 

@@ -2258,18 +2258,19 @@ def _fast_term(mode, jg, wg, eg, sl, r, on, vc, dgc, dtc, ref, dref, var, c1, c2
 
 @nb.njit(cache=True, error_model="numpy")
 def _fast_check(mode, gs, nk, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
-                rows, g0, dlog, locate, c1, c2, mu_u, su2, ws, nl, prod, prune, dmax, tail):
+                rows, g0, dlog, locate, c1, c2, mu_u, su2, nl, prune, least, t, wmax, tail):
     """The events' ``-2 sum ln(f_i + lambda)`` (:func:`_fit_nll`'s density) under
     :func:`_fast_pass`'s model, at each of the ``nk`` points ``gs[:nk]``, into ``nl[:nk]``
-    (``ws``: ``(nk, 7)`` work, ``prod``: ``(nk,)``). With the table (mode 1) the points after
-    the first (the fit's own) are moved to their nearest grid rows in ``gs``, each read from
-    its row alone (:func:`_eval_row`). The first point is summed over all events, then the
-    others in one pass over the slots ``sl`` (:func:`_read_slots`); with ``prune``, a point
-    leaves that pass once its sum is sure to end at least :data:`_PROBE_MARGIN` above the
-    first's less (:func:`_least_terms`, with ``dmax`` from :func:`_steepest_slopes` and
-    ``tail`` work of ``hi - lo + 1``), and ``nl`` holds that bound for it instead: the same
-    decision, a fraction of the events read."""
+    (the events' slots ``sl``, :func:`_read_slots`). With the table (mode 1) the points
+    after the first (the fit's own) are moved to their nearest grid rows in ``gs``, each
+    read from its row alone (:func:`_eval_row`). With ``prune``, a point after the first
+    stops once its sum is sure to end at least :data:`_PROBE_MARGIN` above the first's less
+    (:func:`_least_terms`, with ``least`` from :func:`_least_slots`, the events' times
+    ``t`` and ``tail`` work of ``hi - lo + 1``), and ``nl`` holds that bound for it
+    instead: the same decision, a fraction of the events read. Each point is summed in its
+    own pass (:func:`_point_nll`)."""
     nr = rows.shape[0]
+    floor = -np.inf
     for k in range(nk):
         if mode == 1 and k > 0:
             # a probe at its nearest grid row: one row read per event (the row's index
@@ -2281,138 +2282,157 @@ def _fast_check(mode, gs, nk, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0
         else:
             j, w, e = _at_g(mode, gs[k], g0, dlog, nr)
         vs, _, _ = _eval(mode, j, w, e, -1, False, exact, v0a, v0b, rows, dlog, locate)
-        ws[k, 0] = j
-        ws[k, 1] = w
-        ws[k, 2] = e
-        ws[k, 3] = vs
-        ws[k, 6] = 1.0  # in the pass
-        prod[k] = 1.0
-        nl[k] = 0.0
-    _check_points(mode, 0, 1, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, rows, dlog, c1, c2,
-                  mu_u, su2, ws, nl, prod, -np.inf, tail)
-    if nk > 1:
-        floor = -np.inf
-        if prune:
+        nl[k] = _point_nll(mode, dead, k == 0, j, w, e, vs, lo, hi, sl, p, sr2, tq2, eq2,
+                           lam, rows, dlog, c1, c2, mu_u, su2, floor, tail)
+        if k == 0 and prune and nk > 1:
             floor = nl[0] - _PROBE_MARGIN
-            _least_terms(mode, lo, hi, sl, sr2, tq2, lam, dmax, tail)
-        _check_points(mode, 1, nk, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, rows, dlog, c1,
-                      c2, mu_u, su2, ws, nl, prod, floor, tail)
+            _least_terms(lo, hi, t, wmax, least, tail)
 
 
 _CHECK_EVERY = 4
-""":func:`_fast_check` looks which of its points may leave its pass after every this many
-events."""
+""":func:`_fast_check`'s points look whether they may stop after every this many events."""
 
 
 def _steepest_slopes(rows: np.ndarray) -> np.ndarray:
     """The photoreceptor table's steepest ``|dV|`` over all its radiances, at each of its
-    time intervals (:func:`_least_terms`)."""
+    time intervals (:func:`_least_slots`)."""
     return np.abs(np.asarray(rows)[:, :, 1]).max(axis=0).astype(np.float64)
 
 
 @nb.njit(cache=True, error_model="numpy")
-def _least_terms(mode, lo, hi, sl, sr2, tq2, lam, dmax, tail):
-    """``tail[r]``: the least that events ``lo + r`` on can add to :func:`_fast_check`'s
-    sum at any ``g``. An event's variance holds at least ``sr2 + (dV/dt)^2 tq2``, and its
-    density ``|dV/dt| / s phi(z)`` rises with ``|dV/dt|``, which is at most ``dmax`` at its
-    table interval times its time scale (mode 1; the table's greatest over its radiances);
-    in mode 0 ``f <= 1 / sqrt(2 pi tq2)`` alone (none without timing noise)."""
-    acc = 0.0
-    tail[hi - lo] = 0.0
-    for r in range(hi - lo - 1, -1, -1):
+def _least_slots(mode, wmax, exact, locate, dmax, sr2, tq2, lam):
+    """For each whole µs slot of the window, the least that an event crossing there can add
+    to :func:`_fast_check`'s sum at any ``g``. An event's variance holds at least ``sr2 +
+    (dV/dt)^2 tq2``, and its density ``|dV/dt| / s phi(z)`` rises with ``|dV/dt|``, which
+    is at most ``dmax`` (:func:`_steepest_slopes`) at the slot's table interval times its
+    time scale (mode 1); in mode 0 ``f <= 1 / sqrt(2 pi tq2)`` alone (none without timing
+    noise)."""
+    out = np.empty(wmax)
+    for m in range(wmax):
         if mode == 1:
-            x = dmax[int(sl[r, 0])] * abs(sl[r, 2])
+            s0, _, s2, _ = _slot(mode, m, False, exact, locate)
+            x = dmax[int(s0)] * abs(s2)
             v = sr2 + x * x * tq2
             f = x / math.sqrt(v) * _INV_SQRT_2PI if v > 0.0 else np.inf
         else:
             f = _INV_SQRT_2PI / math.sqrt(tq2) if tq2 > 0.0 else np.inf
-        acc -= 2.0 * math.log(max(f + lam, _DENSITY_FLOOR))
-        tail[r] = acc
+        out[m] = -2.0 * math.log(max(f + lam, _DENSITY_FLOOR))
+    return out
 
 
 @nb.njit(cache=True, error_model="numpy")
-def _check_points(mode, ka, kb, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, rows, dlog, c1, c2,
-                  mu_u, su2, ws, nl, prod, floor, tail):
-    """:func:`_fast_check`'s sums for points ``ka`` to ``kb - 1``, in one pass over the
-    events; a point whose sum is sure to end at ``floor`` or above (the events after event
-    ``lo + r`` add at least ``tail[r + 1]``, :func:`_least_terms`) leaves it with that
-    bound in ``nl``."""
-    live = kb - ka
-    level = 0.0
-    for i in range(lo, hi):
-        r = i - lo
-        a0 = sl[r, 0]
-        a1 = sl[r, 1]
-        a2 = sl[r, 2]
-        a3 = sl[r, 3]
-        step = c1 if p[i] > 0 else -c2
-        first = r == 0
-        if not dead and not first:
-            level += step
-        for k in range(ka, kb):
-            if ws[k, 6] == 0.0:
-                continue
-            j = int(ws[k, 0])
-            w = ws[k, 1]
-            e = ws[k, 2]
-            if k == 0:
-                vc, _, dtc = _eval_slot(mode, j, w, e, a0, a1, a2, a3, rows, dlog)
-            else:
-                vc, dtc = _eval_row(mode, j, e, a0, a1, a2, a3, rows)
+def _least_terms(lo, hi, t, wmax, least, tail):
+    """``tail[r]``: the least that events ``lo + r`` on (times ``t``) can add to
+    :func:`_fast_check`'s sum at any ``g``, from the slots' ``least``
+    (:func:`_least_slots`)."""
+    acc = 0.0
+    tail[hi - lo] = 0.0
+    for r in range(hi - lo - 1, -1, -1):
+        acc += least[min(t[lo + r], wmax - 1)]
+        tail[r] = acc
+
+
+@nb.njit(cache=True, error_model="numpy", fastmath=_FAST_MATH)
+def _point_nll(mode, dead, own, j, w, e, vs, lo, hi, sl, p, sr2, tq2, eq2, lam, rows, dlog,
+               c1, c2, mu_u, su2, floor, tail):
+    """:func:`_fast_check`'s sum at one point (what :func:`_at_g` gave as ``j, w, e``, and
+    ``vs``, the cycle start's level there): read between two grid rows (``own``) or at row
+    ``j`` alone (:func:`_eval_row`). Once the sum is sure to end at ``floor`` or above (the
+    events from ``lo + r`` on add at least ``tail[r]``, :func:`_least_terms`), that bound
+    instead. Each of the model's four kinds and the two readings runs its own loop
+    (:func:`_point_terms`)."""
+    jj = int(j)
+    if own:
+        if mode == 1:
             if dead:
-                if first:
-                    ref = ws[k, 3] + mu_u
-                    var = sr2 + dtc * dtc * tq2 + su2
-                else:
-                    if k == 0:
-                        ref, _, dte = _eval_slot(mode, j, w, e, sl[r, 4], sl[r, 5],
-                                                 sl[r, 6], sl[r, 7], rows, dlog)
-                    else:
-                        ref, dte = _eval_row(mode, j, e, sl[r, 4], sl[r, 5], sl[r, 6],
-                                             sl[r, 7], rows)
-                    var = sr2 + dtc * dtc * tq2 + dte * dte * eq2
-            else:
-                if first:
-                    # the walk from the first event's level, as in _fast_pass
-                    ws[k, 4] = vc
-                    ws[k, 5] = dtc * dtc * tq2
-                    continue
-                ref = ws[k, 4] + level - step
-                var = sr2 * r + dtc * dtc * tq2 + ws[k, 5]
-            res = vc - ref - step
-            if var < 1e-12:
-                var = 1e-12
-            iw = 1.0 / var
-            f = _time_density(res * res * iw, dtc, iw)
-            # the densities multiplied, the logarithm taken before the product could leave
-            # float64's range
-            d = max(f + lam, _DENSITY_FLOOR)
-            q = prod[k] * d
-            if q < 1e-150 or q > 1e150:
-                nl[k] -= 2.0 * (math.log(prod[k]) + math.log(d))
-                q = 1.0
-            prod[k] = q
-        if floor > -np.inf and (r + 1) % _CHECK_EVERY == 0:
-            for k in range(ka, kb):
-                if ws[k, 6] == 0.0:
-                    continue
-                bound = nl[k] - 2.0 * math.log(prod[k]) + tail[r + 1]
-                if bound >= floor:
-                    ws[k, 6] = 0.0
-                    nl[k] = bound
-                    live -= 1
-            if live == 0:
-                return
-    for k in range(ka, kb):
-        if ws[k, 6] != 0.0:
-            nl[k] -= 2.0 * math.log(prod[k])
+                return _point_terms(1, True, True, jj, w, e, vs, lo, hi, sl, p, sr2, tq2, eq2,
+                                    lam, rows, dlog, c1, c2, mu_u, su2, floor, tail)
+            return _point_terms(1, False, True, jj, w, e, vs, lo, hi, sl, p, sr2, tq2, eq2,
+                                lam, rows, dlog, c1, c2, mu_u, su2, floor, tail)
+        if dead:
+            return _point_terms(0, True, True, jj, w, e, vs, lo, hi, sl, p, sr2, tq2, eq2,
+                                lam, rows, dlog, c1, c2, mu_u, su2, floor, tail)
+        return _point_terms(0, False, True, jj, w, e, vs, lo, hi, sl, p, sr2, tq2, eq2, lam,
+                            rows, dlog, c1, c2, mu_u, su2, floor, tail)
+    if mode == 1:
+        if dead:
+            return _point_terms(1, True, False, jj, w, e, vs, lo, hi, sl, p, sr2, tq2, eq2,
+                                lam, rows, dlog, c1, c2, mu_u, su2, floor, tail)
+        return _point_terms(1, False, False, jj, w, e, vs, lo, hi, sl, p, sr2, tq2, eq2, lam,
+                            rows, dlog, c1, c2, mu_u, su2, floor, tail)
+    if dead:
+        return _point_terms(0, True, False, jj, w, e, vs, lo, hi, sl, p, sr2, tq2, eq2, lam,
+                            rows, dlog, c1, c2, mu_u, su2, floor, tail)
+    return _point_terms(0, False, False, jj, w, e, vs, lo, hi, sl, p, sr2, tq2, eq2, lam,
+                        rows, dlog, c1, c2, mu_u, su2, floor, tail)
+
+
+@nb.njit(cache=True, inline="always", error_model="numpy")
+def _point_read(mode, own, j, w, e, s0, s1, s2, s3, rows, dlog):
+    """``(V, dV/dt)`` at a slot for :func:`_point_terms`."""
+    if own:
+        v, _, dt = _eval_slot(mode, j, w, e, s0, s1, s2, s3, rows, dlog)
+        return v, dt
+    return _eval_row(mode, j, e, s0, s1, s2, s3, rows)
+
+
+@nb.njit(cache=True, inline="always", error_model="numpy")
+def _point_terms(mode, dead, own, j, w, e, vs, lo, hi, sl, p, sr2, tq2, eq2, lam, rows, dlog,
+                 c1, c2, mu_u, su2, floor, tail):
+    """:func:`_point_nll` for one kind of model and reading (``mode``, ``dead`` and
+    ``own`` constants where it is inlined): the first event apart, then the others, with
+    :func:`_fast_pass`'s model. The densities are multiplied, the logarithm taken before
+    the product could leave float64's range and every :data:`_CHECK_EVERY` events, where
+    the bound is looked at."""
+    if hi <= lo:
+        return 0.0
+    nl = 0.0
+    prod = 1.0
+    vc, dtc = _point_read(mode, own, j, w, e, sl[0, 0], sl[0, 1], sl[0, 2], sl[0, 3], rows,
+                          dlog)
+    # without a dead time, the walk from the first event's level
+    base = vc
+    var0 = dtc * dtc * tq2
+    level = 0.0
+    if dead:
+        # the first event from the cycle start's level
+        res = vc - (vs + mu_u) - (c1 if p[lo] > 0 else -c2)
+        iw = 1.0 / max(sr2 + dtc * dtc * tq2 + su2, 1e-12)
+        prod = max(_time_density(res * res * iw, dtc, iw) + lam, _DENSITY_FLOOR)
+    check = floor > -np.inf
+    for i in range(lo + 1, hi):
+        r = i - lo
+        vc, dtc = _point_read(mode, own, j, w, e, sl[r, 0], sl[r, 1], sl[r, 2], sl[r, 3],
+                              rows, dlog)
+        step = c1 if p[i] > 0 else -c2
+        if dead:
+            ref, dte = _point_read(mode, own, j, w, e, sl[r, 4], sl[r, 5], sl[r, 6],
+                                   sl[r, 7], rows, dlog)
+            var = sr2 + dtc * dtc * tq2 + dte * dte * eq2
+        else:
+            level += step
+            ref = base + level - step
+            var = sr2 * r + dtc * dtc * tq2 + var0
+        res = vc - ref - step
+        iw = 1.0 / max(var, 1e-12)
+        d = max(_time_density(res * res * iw, dtc, iw) + lam, _DENSITY_FLOOR)
+        q = prod * d
+        if q < 1e-150 or q > 1e150:
+            nl -= 2.0 * (math.log(prod) + math.log(d))
+            q = 1.0
+        prod = q
+        if check and (r + 1) % _CHECK_EVERY == 0:
+            bound = nl - 2.0 * math.log(prod) + tail[r + 1]
+            if bound >= floor:
+                return bound
+    return nl - 2.0 * math.log(prod)
 
 
 @nb.njit(cache=True, parallel=True, error_model="numpy")
 def _fast_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0, dlog,
                  locate, wmax, g_lo, g_hi, net_g, net_v, min_events, con0, coff0, scon,
                  scoff, out_g, out_sd, out_con, out_coff, out_flag, u_sd, split, net_v2,
-                 split2, order, out_u, out_full, hold_sd, dmax):
+                 split2, order, out_u, out_full, hold_sd, least):
     """Every pixel's fast fit (docs/ml.md, "The fast fit"): ``g`` alone, the thresholds
     held at their priors (a calibration's, or learned ones whose spreads are at most
     ``hold_sd``: the others are fitted in full), by Newton's method on the likelihood from
@@ -2430,8 +2450,6 @@ def _fast_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, row
         acc = np.zeros(6)
         gs = np.empty(len(_FAST_PROBES) + 1)
         nl = np.empty(len(_FAST_PROBES) + 1)
-        prod = np.empty(len(_FAST_PROBES) + 1)
-        ws = np.empty((len(_FAST_PROBES) + 1, 7))
         res, saved, work, scan = _fit_space(g_lo, g_hi)
         n_max = 0
         for px in range(blk * _BLOCK, min(npx, (blk + 1) * _BLOCK)):
@@ -2507,8 +2525,8 @@ def _fast_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, row
                         gs[nk] = gq
                         nk += 1
                 _fast_check(mode, gs, nk, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0a,
-                            v0b, rows, g0, dlog, locate, c1, c2, mu_u, su * su, ws, nl, prod,
-                            True, dmax, tail)
+                            v0b, rows, g0, dlog, locate, c1, c2, mu_u, su * su, nl, True,
+                            least, t, wmax, tail)
                 for k in range(1, nk):
                     if nl[k] < nl[0] - _PROBE_MARGIN:
                         poor = True
@@ -3339,7 +3357,9 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
     parts = 1 if progress is None else min(_PROGRESS_PARTS, max(1, npx // _BLOCK))
     edges = np.linspace(0, npx, parts + 1).astype(np.int64)
     full = np.zeros(npx, np.uint8)
-    dmax = _steepest_slopes(model.rows)
+    least = _least_slots(model.mode, np.int64(model.window_us), model.exact, model.locate,
+                         _steepest_slopes(model.rows), model.reset_sigma ** 2, tq2,
+                         model.noise_rate_per_us) if fast else np.empty(0)
     for a, b in zip(edges[:-1].tolist(), edges[1:].tolist(), strict=True):
         if fast and not fixed:
             _fast_kernel(off[a:b + 1], t, p, model.mode, model.dead, model.reset_sigma ** 2,
@@ -3350,7 +3370,7 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
                          scoff[a:b], out_g[a:b], out_sd[a:b], out_con[a:b], out_coff[a:b],
                          out_flag[a:b], float(start_sigma), np.int64(model.split_us),
                          model.net_v2, np.int64(model.split2_us), block_order(b - a, _BLOCK),
-                         out_u[a:b], full[a:b], float(hold_sd), dmax)
+                         out_u[a:b], full[a:b], float(hold_sd), least)
             if progress is not None:
                 progress(b)
             continue
