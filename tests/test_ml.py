@@ -1073,8 +1073,8 @@ def _fast_checker(sensor: SensorParams, truth: float, seed: int = 1
         nl = np.empty(k)
         ml._fast_check(m.mode, g, k, 0, n, sl, pp, m.dead, m.reset_sigma ** 2, tq2, eq2,
                        m.noise_rate_per_us, m.exact, m.v0[0], m.v0[1], m.rows, m.g0,
-                       m.dlog, m.locate, c_on, c_off, mu_u, su * su, nl, prune, least, tt,
-                       wmax, np.empty(n + 1))
+                       m.dlog, m.locate, c_on, c_off, mu_u, su * su, nl, False, prune,
+                       least, tt, wmax, np.empty(n + 1))
         return g, nl
 
     tail = np.empty(n + 1)

@@ -2147,34 +2147,36 @@ def _read_slots(mode, lo, hi, t, dead, exact, locate, wmax, sl):
 
 @nb.njit(cache=True, error_model="numpy", fastmath=_FAST_MATH)
 def _fast_pass(mode, g, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
-               dlog, locate, c1, c2, mu_u, su2, robust, acc):
+               dlog, locate, c1, c2, mu_u, su2, robust, keep, acc):
     """One pass over a pixel's events at ``g`` with the thresholds held at ``c1``, ``c2``
     and the start offset at its prior's mean ``mu_u`` (variance ``su2``, added to the
     first equation's): the Newton sums of the one-parameter likelihood into ``acc``:
     ``(sum w r J - sum jac, sum w J^2, sum_on w J, -sum_off w J, max z^2, sum w r^2)``
     (the model of :func:`_normal`, its gradient's Jacobian term included; ``robust``: the
-    outlier weights at ``g``; ``sl``: the events' slots, :func:`_read_slots`). Without a
+    outlier weights at ``g``; ``sl``: the events' slots, :func:`_read_slots`); with
+    ``keep``, ``acc[6]``: the events' ``-2 sum ln(f_i + lambda)`` at ``g``, as
+    :func:`_fast_check` sums it for its first point. Without a
     dead time the walk is taken from the first event's level (``u`` drops out). Each of
     the model's four kinds (:data:`MlModel.mode`, with or without a dead time) runs its
     own loop (:func:`_fast_sums`)."""
     if mode == 1:
         if dead:
             _fast_sums(1, True, g, lo, hi, sl, p, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
-                       g0, dlog, locate, c1, c2, mu_u, su2, robust, acc)
+                       g0, dlog, locate, c1, c2, mu_u, su2, robust, keep, acc)
         else:
             _fast_sums(1, False, g, lo, hi, sl, p, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
-                       g0, dlog, locate, c1, c2, mu_u, su2, robust, acc)
+                       g0, dlog, locate, c1, c2, mu_u, su2, robust, keep, acc)
     elif dead:
         _fast_sums(0, True, g, lo, hi, sl, p, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
-                   dlog, locate, c1, c2, mu_u, su2, robust, acc)
+                   dlog, locate, c1, c2, mu_u, su2, robust, keep, acc)
     else:
         _fast_sums(0, False, g, lo, hi, sl, p, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
-                   dlog, locate, c1, c2, mu_u, su2, robust, acc)
+                   dlog, locate, c1, c2, mu_u, su2, robust, keep, acc)
 
 
 @nb.njit(cache=True, inline="always", error_model="numpy")
 def _fast_sums(mode, dead, g, lo, hi, sl, p, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
-               dlog, locate, c1, c2, mu_u, su2, robust, acc):
+               dlog, locate, c1, c2, mu_u, su2, robust, keep, acc):
     """:func:`_fast_pass` for one kind of model (``mode`` and ``dead`` constants where it
     is inlined): the first event apart, and no branch on an event's values in the loop."""
     if hi <= lo:
@@ -2189,13 +2191,15 @@ def _fast_sums(mode, dead, g, lo, hi, sl, p, sr2, tq2, eq2, lam, exact, v0a, v0b
     b_off = 0.0
     z_max = 0.0
     chi2 = 0.0
+    nl = 0.0
+    prod = 1.0
     if dead:
         vs, dgs, _ = _eval(mode, jg, wg, eg, -1, False, exact, v0a, v0b, rows, dlog, locate)
         # the first event from the cycle start's level
-        a, b, b_on, b_off, z_max, chi2 = _fast_term(
+        a, b, b_on, b_off, z_max, chi2, nl, prod = _fast_term(
             mode, jg, wg, eg, sl, 0, p[lo] > 0, vc, dgc, dtc, vs + mu_u, dgs,
-            sr2 + dtc * dtc * tq2 + su2, c1, c2, lam, robust, rows, dlog,
-            a, b, b_on, b_off, z_max, chi2)
+            sr2 + dtc * dtc * tq2 + su2, c1, c2, lam, robust, keep, rows, dlog,
+            a, b, b_on, b_off, z_max, chi2, nl, prod)
     # without a dead time, the walk from the first event's level, the crossing it stamps
     base = vc
     dbase = dgc
@@ -2216,9 +2220,10 @@ def _fast_sums(mode, dead, g, lo, hi, sl, p, sr2, tq2, eq2, lam, exact, v0a, v0b
             ref = base + level - step
             dref = dbase
             var = sr2 * r + dtc * dtc * tq2 + var0
-        a, b, b_on, b_off, z_max, chi2 = _fast_term(
+        a, b, b_on, b_off, z_max, chi2, nl, prod = _fast_term(
             mode, jg, wg, eg, sl, r, on, vc, dgc, dtc, ref, dref, var, c1, c2, lam, robust,
-            rows, dlog, a, b, b_on, b_off, z_max, chi2)
+            keep, rows, dlog, a, b, b_on, b_off, z_max, chi2, nl, prod)
+    acc[6] = nl - 2.0 * math.log(prod)
     acc[0] = a
     acc[1] = b
     acc[2] = b_on
@@ -2229,9 +2234,9 @@ def _fast_sums(mode, dead, g, lo, hi, sl, p, sr2, tq2, eq2, lam, exact, v0a, v0b
 
 @nb.njit(cache=True, error_model="numpy", fastmath=_FAST_MATH)
 def _fast_term(mode, jg, wg, eg, sl, r, on, vc, dgc, dtc, ref, dref, var, c1, c2, lam,
-               robust, rows, dlog, a, b, b_on, b_off, z_max, chi2):
+               robust, keep, rows, dlog, a, b, b_on, b_off, z_max, chi2, nl, prod):
     """One event's terms of :func:`_fast_pass`'s sums, added (the event's slots in
-    ``sl[r]``)."""
+    ``sl[r]``; with ``keep``, its density multiplied into ``prod``, :func:`_point_terms`)."""
     step = c1 if on else -c2
     res = vc - ref - step
     jj = dgc - dref
@@ -2242,23 +2247,39 @@ def _fast_term(mode, jg, wg, eg, sl, r, on, vc, dgc, dtc, ref, dref, var, c1, c2
     jac = _slope_slot(mode, jg, eg, sl[r, 0], sl[r, 1], sl[r, 2], sl[r, 3], rows,
                       dlog) / dtc
     jac = min(max(jac, -_JACOBIAN_MAX), _JACOBIAN_MAX) if dtc != 0.0 else 0.0
-    if robust:
+    if robust or keep:
         f = _time_density(z2, dtc, w)
-        gam = f / (f + lam)
-        w *= gam
-        jac *= gam
+        if keep:
+            nl, prod = _density_product(f + lam, nl, prod)
+        if robust:
+            gam = f / (f + lam)
+            w *= gam
+            jac *= gam
     wj = w * jj
     chi2 += w * res * res
     a += w * res * jj - jac
     b += wj * jj
     b_on += wj if on else 0.0
     b_off -= 0.0 if on else wj
-    return a, b, b_on, b_off, z_max, chi2
+    return a, b, b_on, b_off, z_max, chi2, nl, prod
+
+
+@nb.njit(cache=True, inline="always", error_model="numpy")
+def _density_product(d, nl, prod):
+    """An event's density ``d`` (``f + lambda``) into a sum ``-2 sum ln d`` held as ``nl -
+    2 ln prod``: multiplied into ``prod``, whose logarithm is taken into ``nl`` before the
+    product could leave float64's range."""
+    d = max(d, _DENSITY_FLOOR)
+    q = prod * d
+    if q < 1e-150 or q > 1e150:
+        return nl - 2.0 * (math.log(prod) + math.log(d)), 1.0
+    return nl, q
 
 
 @nb.njit(cache=True, error_model="numpy")
 def _fast_check(mode, gs, nk, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
-                rows, g0, dlog, locate, c1, c2, mu_u, su2, nl, prune, least, t, wmax, tail):
+                rows, g0, dlog, locate, c1, c2, mu_u, su2, nl, have, prune, least, t, wmax,
+                tail):
     """The events' ``-2 sum ln(f_i + lambda)`` (:func:`_fit_nll`'s density) under
     :func:`_fast_pass`'s model, at each of the ``nk`` points ``gs[:nk]``, into ``nl[:nk]``
     (the events' slots ``sl``, :func:`_read_slots`). With the table (mode 1) the points
@@ -2268,7 +2289,7 @@ def _fast_check(mode, gs, nk, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0
     (:func:`_least_terms`, with ``least`` from :func:`_least_slots`, the events' times
     ``t`` and ``tail`` work of ``hi - lo + 1``), and ``nl`` holds that bound for it
     instead: the same decision, a fraction of the events read. Each point is summed in its
-    own pass (:func:`_point_nll`)."""
+    own pass (:func:`_point_nll`); with ``have``, ``nl[0]`` holds the first's already."""
     nr = rows.shape[0]
     floor = -np.inf
     for k in range(nk):
@@ -2282,8 +2303,9 @@ def _fast_check(mode, gs, nk, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0
         else:
             j, w, e = _at_g(mode, gs[k], g0, dlog, nr)
         vs, _, _ = _eval(mode, j, w, e, -1, False, exact, v0a, v0b, rows, dlog, locate)
-        nl[k] = _point_nll(mode, dead, k == 0, j, w, e, vs, lo, hi, sl, p, sr2, tq2, eq2,
-                           lam, rows, dlog, c1, c2, mu_u, su2, floor, tail)
+        if k > 0 or not have:
+            nl[k] = _point_nll(mode, dead, k == 0, j, w, e, vs, lo, hi, sl, p, sr2, tq2,
+                               eq2, lam, rows, dlog, c1, c2, mu_u, su2, floor, tail)
         if k == 0 and prune and nk > 1:
             floor = nl[0] - _PROBE_MARGIN
             _least_terms(lo, hi, t, wmax, least, tail)
@@ -2398,7 +2420,7 @@ def _point_terms(mode, dead, own, j, w, e, vs, lo, hi, sl, p, sr2, tq2, eq2, lam
         # the first event from the cycle start's level
         res = vc - (vs + mu_u) - (c1 if p[lo] > 0 else -c2)
         iw = 1.0 / max(sr2 + dtc * dtc * tq2 + su2, 1e-12)
-        prod = max(_time_density(res * res * iw, dtc, iw) + lam, _DENSITY_FLOOR)
+        nl, prod = _density_product(_time_density(res * res * iw, dtc, iw) + lam, nl, prod)
     check = floor > -np.inf
     for i in range(lo + 1, hi):
         r = i - lo
@@ -2415,12 +2437,7 @@ def _point_terms(mode, dead, own, j, w, e, vs, lo, hi, sl, p, sr2, tq2, eq2, lam
             var = sr2 * r + dtc * dtc * tq2 + var0
         res = vc - ref - step
         iw = 1.0 / max(var, 1e-12)
-        d = max(_time_density(res * res * iw, dtc, iw) + lam, _DENSITY_FLOOR)
-        q = prod * d
-        if q < 1e-150 or q > 1e150:
-            nl -= 2.0 * (math.log(prod) + math.log(d))
-            q = 1.0
-        prod = q
+        nl, prod = _density_product(_time_density(res * res * iw, dtc, iw) + lam, nl, prod)
         if check and (r + 1) % _CHECK_EVERY == 0:
             bound = nl - 2.0 * math.log(prod) + tail[r + 1]
             if bound >= floor:
@@ -2447,7 +2464,7 @@ def _fast_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, row
     for bi in nb.prange(nblk):
         blk = order[bi]
         h, bvec, x, lmat, wy, wz, stat, st_o = _workspace()
-        acc = np.zeros(6)
+        acc = np.zeros(7)
         gs = np.empty(len(_FAST_PROBES) + 1)
         nl = np.empty(len(_FAST_PROBES) + 1)
         res, saved, work, scan = _fit_space(g_lo, g_hi)
@@ -2484,9 +2501,14 @@ def _fast_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, row
             if held:
                 _read_slots(mode, lo, hi, t, dead, exact, locate, wmax, sl)
             acc[:] = 0.0
-            for _ in range(_FAST_ITER if held else 0):
+            keep = False
+            for it in range(_FAST_ITER if held else 0):
+                # the check's sum at the fit kept from the pass likely to be the last (the
+                # step before under a deviation): the converged fit lies within
+                # _FAST_TOL deviations of it
+                keep = it > 0 and abs(last) * math.sqrt(acc[1]) < 1.0
                 _fast_pass(mode, g, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
-                           rows, g0, dlog, locate, c1, c2, mu_u, su * su, robust, acc)
+                           rows, g0, dlog, locate, c1, c2, mu_u, su * su, robust, keep, acc)
                 if not acc[1] > 0.0:
                     break
                 dg = min(max(-acc[0] / acc[1], -_MAX_STEP_G), _MAX_STEP_G)
@@ -2518,6 +2540,7 @@ def _fast_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, row
                 # the likelihood's profile (thresholds held) at a few points about the fit:
                 # a likelier one means another optimum, which the full fit weighs
                 gs[0] = g
+                nl[0] = acc[6]
                 nk = 1
                 for d in _FAST_PROBES:
                     gq = min(max(g + d, g_lo), g_hi)
@@ -2525,8 +2548,8 @@ def _fast_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, row
                         gs[nk] = gq
                         nk += 1
                 _fast_check(mode, gs, nk, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0a,
-                            v0b, rows, g0, dlog, locate, c1, c2, mu_u, su * su, nl, True,
-                            least, t, wmax, tail)
+                            v0b, rows, g0, dlog, locate, c1, c2, mu_u, su * su, nl, keep,
+                            True, least, t, wmax, tail)
                 for k in range(1, nk):
                     if nl[k] < nl[0] - _PROBE_MARGIN:
                         poor = True
