@@ -1042,11 +1042,13 @@ def test_fast_fit_check_finds_the_truths_optimum(case: str) -> None:
 def _fast_checker(sensor: SensorParams, truth: float, seed: int = 1
                   ) -> tuple[ml.MlModel, Callable[[list[float], bool], tuple[np.ndarray,
                                                                            np.ndarray]],
-                             float, int]:
+                             float, int, Callable[[float, bool], np.ndarray]]:
     """The fast fit's check (``ml._fast_check``) on one simulated flat pixel of radiance
     ``truth``, with the imx636 preset's designed rig: ``check(points, prune)`` gives the
     points as read (probes at their grid rows) and their ``-2 ln L``; then the least the
-    events can add to such a sum (``ml._least_terms``) and how many they are."""
+    events can add to such a sum (``ml._least_terms``), how many they are, and
+    ``newton(g, robust)``: the fast fit's Newton sums at ``g`` (``ml._fast_pass``), with
+    the check's sum kept."""
     rig = default_rig("imx636")
     m = ml.ml_model(rig, sensor)
     drawn = draw_thresholds(sensor, width=1, height=1, rng=np.random.default_rng(seed))
@@ -1077,9 +1079,16 @@ def _fast_checker(sensor: SensorParams, truth: float, seed: int = 1
                        least, tt, wmax, np.empty(n + 1))
         return g, nl
 
+    def newton(g: float, robust: bool) -> np.ndarray:
+        acc = np.zeros(7)
+        ml._fast_pass(m.mode, g, 0, n, sl, pp, m.dead, m.reset_sigma ** 2, tq2, eq2,
+                      m.noise_rate_per_us, m.exact, m.v0[0], m.v0[1], m.rows, m.g0, m.dlog,
+                      m.locate, c_on, c_off, mu_u, su * su, robust, True, acc)
+        return acc
+
     tail = np.empty(n + 1)
     ml._least_terms(0, n, tt, wmax, least, tail)
-    return m, check, float(tail[0]), n
+    return m, check, float(tail[0]), n, newton
 
 
 @pytest.mark.parametrize("refractory_us", [0.0, 40.0])
@@ -1093,7 +1102,7 @@ def test_fast_check_reads_its_points_at_table_rows_as_the_model_there(
                                        refractory_us=refractory_us,
                                        reset_noise_sigma=0.01 if refractory_us else 0.0)
     truth = 1.35
-    m, check, _, _ = _fast_checker(sensor, truth)
+    m, check, _, _, _ = _fast_checker(sensor, truth)
     assert m.mode == 1 and m.dead == (refractory_us > 0)
     near = round((math.log(truth) - m.g0) / m.dlog)  # the row nearest L
     for j in range(near - 15, near + 16):  # g0 + j dlog floors to j - 1 for some
@@ -1112,6 +1121,31 @@ def test_fast_check_reads_its_points_at_table_rows_as_the_model_there(
     assert nl[2] != pytest.approx(nl[0], abs=1.0)  # a quarter away is another likelihood
 
 
+@pytest.mark.parametrize("refractory_us", [0.0, 40.0])
+def test_fast_fit_newton_pass_keeps_the_checks_own_sum(refractory_us: float) -> None:
+    # the check takes the fit's -2 ln L from the Newton pass that converged: that pass's
+    # kept sum is the check's own at the same point (a point between grid rows, read
+    # interpolated by both), with the outlier weights or without, with a dead time or
+    # without; and it changes with the point
+    sensor = get_preset("ideal").with_(name="kind", cutoff_hz=3000.0,
+                                       refractory_us=refractory_us,
+                                       reset_noise_sigma=0.01 if refractory_us else 0.0,
+                                       jitter_sigma_us=2.0 if refractory_us else 0.0)
+    truth = 20.0
+    m, check, _, _, newton = _fast_checker(sensor, truth, seed=2)
+    assert m.dead == (refractory_us > 0)
+    sums = []
+    for d in (-0.3, -0.013, 0.0, 0.021, 0.4):
+        g = math.log(truth) + d
+        assert (g - m.g0) / m.dlog % 1.0 > 1e-3  # between rows
+        own = check([g], False)[1][0]
+        for robust in (False, True):
+            kept = newton(g, robust)[6]
+            assert kept == pytest.approx(own, rel=1e-10, abs=1e-9), (d, robust)
+        sums.append(own)
+    assert min(sums[0], sums[-1]) > min(sums[1:4]) + 1.0
+
+
 @pytest.mark.parametrize("truth", [0.6, 20.0, 3000.0, 1e5])
 def test_fast_check_leaves_out_only_points_it_can_bound_above_the_fit(truth: float) -> None:
     # pruned, a probe leaves the check's pass once the least its remaining events can add
@@ -1119,7 +1153,7 @@ def test_fast_check_leaves_out_only_points_it_can_bound_above_the_fit(truth: flo
     # whole sum and at least that floor, and its decision is the unpruned one
     sensor = get_preset("ideal").with_(name="kind", cutoff_hz=3000.0, refractory_us=40.0,
                                        reset_noise_sigma=0.01, jitter_sigma_us=2.0)
-    _, check, least, n = _fast_checker(sensor, truth, seed=3)
+    _, check, least, n, _ = _fast_checker(sensor, truth, seed=3)
     # the fit's point: the likeliest of a scan 0.02 apart about the truth
     scan = [math.log(truth) + 0.02 * i for i in range(-50, 51)]
     # the least the events can add: below every point's sum, the fit's by less than the
