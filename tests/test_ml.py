@@ -1313,9 +1313,11 @@ def test_fast_fit_holds_thresholds_once_learned() -> None:
 
 
 @pytest.mark.parametrize("threads", [1, 2])
-def test_grouping_by_pixel_keeps_each_pixels_time_order(threads: int) -> None:
-    """The counting sort against a stable argsort, on events out of time order, some
-    outside the window, on a sensor whose pixel count is no multiple of the buckets."""
+def test_grouping_by_pixel_puts_each_pixels_events_in_time_order(threads: int) -> None:
+    """The counting sort against a stable sort by pixel, then time, on events out of time
+    order (with ties, whose stream order is kept), some outside the window, on a sensor
+    whose pixel count is no multiple of the buckets; a sorted stream's pixels keep their
+    order, and one pixel's events stepping back are sorted."""
     import numba
 
     gen = np.random.default_rng(5)
@@ -1335,7 +1337,7 @@ def test_grouping_by_pixel_keeps_each_pixels_time_order(threads: int) -> None:
         numba.set_num_threads(previous)
     kept = ev[(ev["t"] >= start) & (ev["t"] < start + window)]
     pix = kept["y"].astype(np.int64) * width + kept["x"]
-    order = np.argsort(pix, kind="stable")
+    order = np.lexsort((kept["t"], pix))  # stable: ties keep the stream's order
     assert t.dtype == np.int32
     np.testing.assert_array_equal(t, kept["t"][order] - start)
     np.testing.assert_array_equal(p, kept["p"][order])

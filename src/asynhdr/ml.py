@@ -2119,6 +2119,11 @@ above the truth's from a start too bright, and about 1.0 below it beside ``L_con
 away step over, and the point 1.0 above the one 1.0 below. With the photoreceptor's
 table, each point is the table's grid row nearest it (within ``dlog / 2``), whose values
 are read from one row instead of interpolated between two (:func:`_fast_check`)."""
+_KEEP_STEP = 4.0
+"""... and the fast fit's Newton pass keeps :func:`_fast_check`'s sum at its point when the
+step before it was under this many deviations: on the speed's cycle (docs/ml.md) the pass
+after such a step is most often the last (the median fit that converges in two passes
+steps 3.8 deviations, then 0.02)."""
 _FAST_OUTLIER_Z2 = 9.0
 """... with the outlier weights from the first step under one standard deviation on, when
 an event lies three deviations off."""
@@ -2503,10 +2508,10 @@ def _fast_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, row
             acc[:] = 0.0
             keep = False
             for it in range(_FAST_ITER if held else 0):
-                # the check's sum at the fit kept from the pass likely to be the last (the
-                # step before under a deviation): the converged fit lies within
+                # the check's sum at the fit kept from a pass likely to be the last (the
+                # step before under _KEEP_STEP deviations): the converged fit lies within
                 # _FAST_TOL deviations of it
-                keep = it > 0 and abs(last) * math.sqrt(acc[1]) < 1.0
+                keep = it > 0 and abs(last) * math.sqrt(acc[1]) < _KEEP_STEP
                 _fast_pass(mode, g, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
                            rows, g0, dlog, locate, c1, c2, mu_u, su * su, robust, keep, acc)
                 if not acc[1] > 0.0:
@@ -2977,10 +2982,12 @@ _GROUP_SHIFT = 13
 @nb.njit(cache=True, parallel=True, error_model="numpy")
 def _group_kernel(x, y, p, t, t0, t1, width, npx, nthr):
     """Stable counting sort by pixel of the events with ``t0 <= t < t1``: ``(offsets, t -
-    t0 (int32), p)``. Two passes, each on ``nthr`` threads: the first into buckets of
-    :data:`_GROUP_SHIFT` pixels (each thread its slice of the stream, its own cursors:
-    the slices' order, and so the time order, kept), the second by pixel within each
-    bucket, whose events and counts fit in cache."""
+    t0 (int32), p, pixels whose events were sorted by time)``. Two passes, each on
+    ``nthr`` threads: the first into buckets of :data:`_GROUP_SHIFT` pixels (each thread
+    its slice of the stream, its own cursors: the slices' order, and so the stream's
+    order, kept), the second by pixel within each bucket, whose events and counts fit in
+    cache. A pixel whose events are not in time order there (a stream that steps back) is
+    then sorted by time, stably: as if the stream had been sorted first."""
     n = t.shape[0]
     nbk = (npx >> _GROUP_SHIFT) + 1
     bounds = np.empty(nthr + 1, np.int64)
@@ -3018,6 +3025,7 @@ def _group_kernel(x, y, p, t, t0, t1, width, npx, nthr):
     off = np.empty(npx + 1, np.int64)
     out_t = np.empty(total, np.int32)
     out_p = np.empty(total, np.int8)
+    resorted = np.zeros(nbk, np.int64)
     for k in nb.prange(nbk):
         p0 = k << _GROUP_SHIFT
         p1 = min(npx, (k + 1) << _GROUP_SHIFT)
@@ -3037,21 +3045,57 @@ def _group_kernel(x, y, p, t, t0, t1, width, npx, nthr):
             out_t[e] = b_t[d]
             out_p[e] = b_p[d]
             cnt[j] = e + 1
+        resorted[k] = _sort_pixels(off, out_t, out_p, p0, p1, start[k + 1])
     off[npx] = total
-    return off, out_t, out_p
+    return off, out_t, out_p, resorted.sum()
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _sort_pixels(off, t, p, p0, p1, end):
+    """Pixels ``p0 .. p1 - 1``'s events (from ``off``, the last's up to ``end``) put in
+    time order where they are not, stably (an insertion sort: a stream steps back by a few
+    events at most); how many pixels were."""
+    n = 0
+    for px in range(p0, p1):
+        lo = off[px]
+        hi = off[px + 1] if px + 1 < p1 else end
+        sorted_ = True
+        for e in range(lo + 1, hi):
+            if t[e] < t[e - 1]:
+                sorted_ = False
+                break
+        if sorted_:
+            continue
+        n += 1
+        for e in range(lo + 1, hi):
+            te = t[e]
+            pe = p[e]
+            d = e - 1
+            while d >= lo and t[d] > te:
+                t[d + 1] = t[d]
+                p[d + 1] = p[d]
+                d -= 1
+            t[d + 1] = te
+            p[d + 1] = pe
+    return n
 
 
 def group_by_pixel(events: np.ndarray, *, width: int, height: int, start_us: int,
                    window_us: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The events of ``[start_us, start_us + window_us)`` grouped by pixel (time order kept
-    within a pixel): ``(offsets (n_pixels + 1,) int64, t (µs from start_us, int32),
-    p (int8))``."""
+    """The events of ``[start_us, start_us + window_us)`` grouped by pixel, in time order
+    within a pixel (stably: as if the stream had been sorted by time first):
+    ``(offsets (n_pixels + 1,) int64, t (µs from start_us, int32), p (int8))``."""
     if not 0 < window_us < 2**31:
         raise ValueError(f"ml: a cycle's window is 1 µs to 2**31 µs (35 min); got "
                          f"{window_us} µs")
-    return _group_kernel(events["x"], events["y"], events["p"], events["t"],
-                         np.int64(start_us), np.int64(start_us + window_us), np.int64(width),
-                         np.int64(width * height), np.int64(nb.get_num_threads()))
+    off, t, p, resorted = _group_kernel(
+        events["x"], events["y"], events["p"], events["t"], np.int64(start_us),
+        np.int64(start_us + window_us), np.int64(width), np.int64(width * height),
+        np.int64(nb.get_num_threads()))
+    if resorted:
+        logger.info("ml: %d pixels' events were not in time order in [%d, %d) µs; sorted",
+                    resorted, start_us, start_us + window_us)
+    return off, t, p
 
 
 # ----------------------------------------------------------------------------- public
@@ -3526,7 +3570,8 @@ def estimate(
 
     Parameters
     ----------
-    events : time-sorted events (``EVENT_DTYPE``).
+    events : events (``EVENT_DTYPE``), in any order (each pixel's are put in time order,
+        :func:`group_by_pixel`).
     starts_us : cycle starts (µs); each cycle uses ``[start, start + model.window_us)``.
     model : :func:`ml_model` of the rig and the sensor.
     priors : :func:`thresholds_prior`.
@@ -3753,8 +3798,6 @@ def reconstruct_ml(
     learns); 5x to 9x faster than the full fit on the bench. Without either (``learn=False``)
     it raises ``ValueError``, unless the sensor has no mismatch.
     """
-    from asynhdr.events import sort_events
-
     if l_const is not None and float(l_const) != float(rig.l_const):
         rig = dataclasses.replace(rig, l_const=float(l_const))
     sensor = sensor or sensor_of(rec.metadata, threshold=threshold)
@@ -3778,7 +3821,7 @@ def reconstruct_ml(
                                   c_off=sensor.threshold_off * cm, sigma=0.01)
     else:
         priors = thresholds_prior(sensor, width=w, height=h)
-    ev, _ = sort_events(rec.events)
+    ev = rec.events
     start_sigma = max(sensor.reset_noise_sigma, 0.02) if settled_start else 0.0
     # one cycle at a time (the CLI): its bar starts again with each cycle
     starts = windows.start_us
