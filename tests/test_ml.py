@@ -1343,6 +1343,16 @@ def test_grouping_by_pixel_puts_each_pixels_events_in_time_order(threads: int) -
     np.testing.assert_array_equal(p, kept["p"][order])
     np.testing.assert_array_equal(np.diff(off), np.bincount(pix, minlength=width * height))
     assert off[0] == 0 and off[-1] == kept.size
+    # many events a pixel, most of them tied: a pixel sorted whole, ties in stream order
+    few = np.zeros(20_000, EVENT_DTYPE)
+    few["x"] = gen.integers(0, 4, few.size)
+    few["y"] = gen.integers(0, 4, few.size)
+    few["p"] = gen.choice([-1, 1], few.size)
+    few["t"] = gen.integers(0, 100, few.size)
+    off, t, p = ml.group_by_pixel(few, width=4, height=4, start_us=0, window_us=100)
+    order = np.lexsort((few["t"], few["y"].astype(np.int64) * 4 + few["x"]))
+    np.testing.assert_array_equal(t, few["t"][order])
+    np.testing.assert_array_equal(p, few["p"][order])
     with pytest.raises(ValueError, match="window"):
         ml.group_by_pixel(ev, width=width, height=height, start_us=0, window_us=2**31)
 

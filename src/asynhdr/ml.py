@@ -3053,8 +3053,7 @@ def _group_kernel(x, y, p, t, t0, t1, width, npx, nthr):
 @nb.njit(cache=True, error_model="numpy")
 def _sort_pixels(off, t, p, p0, p1, end):
     """Pixels ``p0 .. p1 - 1``'s events (from ``off``, the last's up to ``end``) put in
-    time order where they are not, stably (an insertion sort: a stream steps back by a few
-    events at most); how many pixels were."""
+    time order where they are not, stably; how many pixels were."""
     n = 0
     for px in range(p0, p1):
         lo = off[px]
@@ -3067,16 +3066,11 @@ def _sort_pixels(off, t, p, p0, p1, end):
         if sorted_:
             continue
         n += 1
-        for e in range(lo + 1, hi):
-            te = t[e]
-            pe = p[e]
-            d = e - 1
-            while d >= lo and t[d] > te:
-                t[d + 1] = t[d]
-                p[d + 1] = p[d]
-                d -= 1
-            t[d + 1] = te
-            p[d + 1] = pe
+        order = np.argsort(t[lo:hi], kind="mergesort")
+        ts = t[lo:hi][order]
+        ps = p[lo:hi][order]
+        t[lo:hi] = ts
+        p[lo:hi] = ps
     return n
 
 
