@@ -2450,20 +2450,63 @@ def _point_terms(mode, dead, own, j, w, e, vs, lo, hi, sl, p, sr2, tq2, eq2, lam
     return nl - 2.0 * math.log(prod)
 
 
+@nb.njit(cache=True, error_model="numpy")
+def _fast_newton(mode, g, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
+                 dlog, locate, c1, c2, mu_u, su2, g_lo, g_hi, acc):
+    """The fast fit's Newton iterations from ``g`` (:func:`_fast_pass`; the outlier weights
+    once an event lies three deviations off): ``(g, converged, keep)``, with the last
+    pass's sums in ``acc`` and, when ``keep``, the check's sum at the fit in ``acc[6]``."""
+    robust = False
+    converged = False
+    last = 0.0
+    acc[:] = 0.0
+    keep = False
+    for it in range(_FAST_ITER):
+        # the check's sum at the fit kept from a pass likely to be the last (the step
+        # before under _KEEP_STEP deviations): the converged fit lies within _FAST_TOL
+        # deviations of it
+        keep = it > 0 and abs(last) * math.sqrt(acc[1]) < _KEEP_STEP
+        _fast_pass(mode, g, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
+                   g0, dlog, locate, c1, c2, mu_u, su2, robust, keep, acc)
+        if not acc[1] > 0.0:
+            break
+        dg = min(max(-acc[0] / acc[1], -_MAX_STEP_G), _MAX_STEP_G)
+        if dg * last < 0.0 and abs(dg) > 0.5 * abs(last):
+            # turning back by more than half the last step: the secant's point
+            dg *= abs(last) / (abs(last) + abs(dg))
+        gn = min(max(g + dg, g_lo), g_hi)
+        last = gn - g
+        g = gn
+        if abs(last) < max(_FAST_TOL / math.sqrt(acc[1]), _FAST_TOL * _TOL_G):
+            if robust or acc[4] < _FAST_OUTLIER_Z2 or lam <= 0.0:
+                converged = True
+                break
+            robust = True
+            last = 0.0
+        elif not robust and acc[4] >= _FAST_OUTLIER_Z2 and lam > 0.0 and \
+                abs(last) * math.sqrt(acc[1]) < 1.0:
+            # near enough for the residuals to tell the outliers
+            robust = True
+            last = 0.0
+    return g, converged, keep
+
+
 @nb.njit(cache=True, parallel=True, error_model="numpy")
 def _fast_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0, dlog,
                  locate, wmax, g_lo, g_hi, net_g, net_v, min_events, con0, coff0, scon,
                  scoff, out_g, out_sd, out_con, out_coff, out_flag, u_sd, split, net_v2,
-                 split2, order, out_u, out_full, hold_sd, least):
+                 split2, order, out_u, out_full, hold_sd, least, out_retry):
     """Every pixel's fast fit (docs/ml.md, "The fast fit"): ``g`` alone, the thresholds
     held at their priors (a calibration's, or learned ones whose spreads are at most
     ``hold_sd``: the others are fitted in full), by Newton's method on the likelihood from
-    the net change's start (:func:`_fast_pass`; the outlier weights once an event lies
-    three deviations off). A fit that does not converge, reaches a bound or is vague,
-    whose chi-square lies beyond its spread, or whose likelihood is lower than at one of
-    the points :data:`_FAST_PROBES` away, is fitted in full (:func:`_fit_pixel`;
-    ``out_full[px]`` set). The variance adds the thresholds' spread through ``dg/dc``.
-    ``split2`` and ``net_v2`` are the full fit's."""
+    the net change's start (:func:`_fast_newton`). Where the likelihood is lower by more
+    than :data:`_PROBE_MARGIN` at one of the points :data:`_FAST_PROBES` away (another
+    optimum), the fit is made again from the likeliest of them, once. A fit that does not
+    converge, reaches a bound or is vague, whose chi-square lies beyond its spread with no
+    likelier point near, or that still finds a likelier point, is fitted in full
+    (:func:`_fit_pixel`; ``out_full[px]`` set; ``out_retry[px]`` where it was made
+    again). The variance adds the thresholds' spread
+    through ``dg/dc``. ``split2`` and ``net_v2`` are the full fit's."""
     npx = off.shape[0] - 1
     nblk = order.shape[0]
     for bi in nb.prange(nblk):
@@ -2499,51 +2542,25 @@ def _fast_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, row
                     break
                 net += c1 if p[i] > 0 else -c2
             g = _initial(net, net_g, net_v)
-            robust = False
-            converged = False
-            last = 0.0
             held = s1 <= hold_sd and s2 <= hold_sd
+            poor = True
+            n = hi - lo
+            var = np.inf
+            flag = 0
             if held:
                 _read_slots(mode, lo, hi, t, dead, exact, locate, wmax, sl)
-            acc[:] = 0.0
-            keep = False
-            for it in range(_FAST_ITER if held else 0):
-                # the check's sum at the fit kept from a pass likely to be the last (the
-                # step before under _KEEP_STEP deviations): the converged fit lies within
-                # _FAST_TOL deviations of it
-                keep = it > 0 and abs(last) * math.sqrt(acc[1]) < _KEEP_STEP
-                _fast_pass(mode, g, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
-                           rows, g0, dlog, locate, c1, c2, mu_u, su * su, robust, keep, acc)
-                if not acc[1] > 0.0:
+            for _attempt in range(2 if held else 0):
+                g, converged, keep = _fast_newton(mode, g, lo, hi, sl, p, dead, sr2, tq2, eq2,
+                                                  lam, exact, v0a, v0b, rows, g0, dlog, locate,
+                                                  c1, c2, mu_u, su * su, g_lo, g_hi, acc)
+                var = 1.0 / acc[1] if acc[1] > 0.0 else np.inf
+                # the thresholds held: their spread moves g by dg/dc = sum w J / sum w J^2
+                var += (acc[2] * acc[2] * s1 * s1 + acc[3] * acc[3] * s2 * s2) * var * var
+                flag = _fit_flag(g, var, g_lo, g_hi)
+                if not converged or flag != 0:
                     break
-                dg = min(max(-acc[0] / acc[1], -_MAX_STEP_G), _MAX_STEP_G)
-                if dg * last < 0.0 and abs(dg) > 0.5 * abs(last):
-                    # turning back by more than half the last step: the secant's point
-                    dg *= abs(last) / (abs(last) + abs(dg))
-                gn = min(max(g + dg, g_lo), g_hi)
-                last = gn - g
-                g = gn
-                if abs(last) < max(_FAST_TOL / math.sqrt(acc[1]), _FAST_TOL * _TOL_G):
-                    if robust or acc[4] < _FAST_OUTLIER_Z2 or lam <= 0.0:
-                        converged = True
-                        break
-                    robust = True
-                    last = 0.0
-                elif not robust and acc[4] >= _FAST_OUTLIER_Z2 and lam > 0.0 and \
-                        abs(last) * math.sqrt(acc[1]) < 1.0:
-                    # near enough for the residuals to tell the outliers
-                    robust = True
-                    last = 0.0
-            var = 1.0 / acc[1] if acc[1] > 0.0 else np.inf
-            # the thresholds held: their spread moves g by dg/dc = sum w J / sum w J^2
-            var += (acc[2] * acc[2] * s1 * s1 + acc[3] * acc[3] * s2 * s2) * var * var
-            n = hi - lo
-            flag = _fit_flag(g, var, g_lo, g_hi)
-            poor = not converged or flag != 0 or \
-                acc[5] > n + _FAST_CHI2_Z * math.sqrt(2.0 * n) + 2.0
-            if not poor:
                 # the likelihood's profile (thresholds held) at a few points about the fit:
-                # a likelier one means another optimum, which the full fit weighs
+                # a likelier one means another optimum
                 gs[0] = g
                 nl[0] = acc[6]
                 nk = 1
@@ -2555,10 +2572,21 @@ def _fast_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, row
                 _fast_check(mode, gs, nk, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0a,
                             v0b, rows, g0, dlog, locate, c1, c2, mu_u, su * su, nl, keep,
                             True, least, t, wmax, tail)
+                best = 0
                 for k in range(1, nk):
-                    if nl[k] < nl[0] - _PROBE_MARGIN:
-                        poor = True
-                        break
+                    if nl[k] < nl[0] - _PROBE_MARGIN and nl[k] < nl[best]:
+                        best = k
+                fits = acc[5] <= n + _FAST_CHI2_Z * math.sqrt(2.0 * n) + 2.0
+                if best == 0 and fits:
+                    poor = False
+                    break
+                if best == 0:
+                    # a chi-square beyond its spread with no likelier point near: the
+                    # thresholds held do not explain the events
+                    break
+                # another optimum: the fit again from the likeliest point (once)
+                g = gs[best]
+                out_retry[px] = 1
             if poor:
                 _fit_pixel(lo, hi, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
                            rows, g0, dlog, locate, wmax, g_lo, g_hi, net_g, net_v, c1, c2, s1,
@@ -2980,36 +3008,30 @@ _GROUP_SHIFT = 13
 
 
 @nb.njit(cache=True, parallel=True, error_model="numpy")
-def _group_kernel(x, y, p, t, t0, t1, width, npx, nthr):
-    """Stable counting sort by pixel of the events with ``t0 <= t < t1``: ``(offsets, t -
-    t0 (int32), p, pixels whose events were sorted by time)``. Two passes, each on
-    ``nthr`` threads: the first into buckets of :data:`_GROUP_SHIFT` pixels (each thread
-    its slice of the stream, its own cursors: the slices' order, and so the stream's
-    order, kept), the second by pixel within each bucket, whose events and counts fit in
-    cache. A pixel whose events are not in time order there (a stream that steps back) is
-    then sorted by time, stably: as if the stream had been sorted first."""
-    n = t.shape[0]
-    nbk = (npx >> _GROUP_SHIFT) + 1
-    bounds = np.empty(nthr + 1, np.int64)
-    for c in range(nthr + 1):
-        bounds[c] = n * c // nthr
+def _group_count(x, y, t, t0, t1, width, nbk, bounds):
+    """:func:`group_by_pixel`'s first pass: per thread (its slice of the stream between
+    ``bounds``), the events with ``t0 <= t < t1`` in each bucket of :data:`_GROUP_SHIFT`
+    pixels, ``(threads, nbk)``."""
+    nthr = bounds.shape[0] - 1
     bc = np.zeros((nthr, nbk), np.int64)
     for c in nb.prange(nthr):
         for i in range(bounds[c], bounds[c + 1]):
             if t[i] >= t0 and t[i] < t1:
                 bc[c, (np.int64(y[i]) * width + x[i]) >> _GROUP_SHIFT] += 1
-    start = np.empty(nbk + 1, np.int64)
-    cur = np.empty((nthr, nbk), np.int64)
-    total = 0
-    for k in range(nbk):
-        start[k] = total
-        for c in range(nthr):
-            cur[c, k] = total
-            total += bc[c, k]
-    start[nbk] = total
-    b_px = np.empty(total, np.int32)
-    b_t = np.empty(total, np.int32)
-    b_p = np.empty(total, np.int8)
+    return bc
+
+
+@nb.njit(cache=True, parallel=True, error_model="numpy")
+def _group_fill(x, y, p, t, t0, t1, width, npx, bounds, cur, start, b_px, b_t, b_p, off,
+                out_t, out_p):
+    """:func:`group_by_pixel`'s second and third passes: each thread's events into the
+    buckets from its cursors ``cur`` (so the stream's order is kept), as the pixel within
+    the bucket, ``t - t0`` and ``p``; then each bucket (from ``start``), whose events and
+    counts fit in cache, by pixel into ``off``, ``out_t`` and ``out_p``, and a pixel whose
+    events are not in time order there (a stream that steps back) sorted by time, stably.
+    Returns how many pixels were."""
+    nthr = bounds.shape[0] - 1
+    nbk = start.shape[0] - 1
     for c in nb.prange(nthr):
         cc = cur[c]
         for i in range(bounds[c], bounds[c + 1]):
@@ -3018,13 +3040,10 @@ def _group_kernel(x, y, p, t, t0, t1, width, npx, nthr):
                 j = np.int64(y[i]) * width + x[i]
                 k = j >> _GROUP_SHIFT
                 d = cc[k]
-                b_px[d] = j
+                b_px[d] = j - (k << _GROUP_SHIFT)
                 b_t[d] = ti - t0
                 b_p[d] = p[i]
                 cc[k] = d + 1
-    off = np.empty(npx + 1, np.int64)
-    out_t = np.empty(total, np.int32)
-    out_p = np.empty(total, np.int8)
     resorted = np.zeros(nbk, np.int64)
     for k in nb.prange(nbk):
         p0 = k << _GROUP_SHIFT
@@ -3033,21 +3052,21 @@ def _group_kernel(x, y, p, t, t0, t1, width, npx, nthr):
             continue
         cnt = np.zeros(p1 - p0 + 1, np.int64)
         for d in range(start[k], start[k + 1]):
-            cnt[b_px[d] - p0 + 1] += 1
+            cnt[np.int64(b_px[d]) + 1] += 1
         cnt[0] = start[k]
         for j in range(p1 - p0):
             cnt[j + 1] += cnt[j]
         for j in range(p1 - p0):
             off[p0 + j] = cnt[j]
         for d in range(start[k], start[k + 1]):
-            j = b_px[d] - p0
+            j = np.int64(b_px[d])
             e = cnt[j]
             out_t[e] = b_t[d]
             out_p[e] = b_p[d]
             cnt[j] = e + 1
         resorted[k] = _sort_pixels(off, out_t, out_p, p0, p1, start[k + 1])
-    off[npx] = total
-    return off, out_t, out_p, resorted.sum()
+    off[npx] = start[nbk]
+    return resorted.sum()
 
 
 @nb.njit(cache=True, error_model="numpy")
@@ -3082,10 +3101,30 @@ def group_by_pixel(events: np.ndarray, *, width: int, height: int, start_us: int
     if not 0 < window_us < 2**31:
         raise ValueError(f"ml: a cycle's window is 1 µs to 2**31 µs (35 min); got "
                          f"{window_us} µs")
-    off, t, p, resorted = _group_kernel(
-        events["x"], events["y"], events["p"], events["t"], np.int64(start_us),
-        np.int64(start_us + window_us), np.int64(width), np.int64(width * height),
-        np.int64(nb.get_num_threads()))
+    # a stable counting sort by pixel in three passes, each on every thread: into buckets
+    # of 2**_GROUP_SHIFT pixels (each thread its slice of the stream), then by pixel within
+    # each bucket. The buffers come from numpy, whose large arrays the kernel maps in huge
+    # pages: a tenth of the page faults of the compiled code's own
+    npx = width * height
+    n = events.size
+    nthr = nb.get_num_threads()
+    bounds = np.array([n * c // nthr for c in range(nthr + 1)], dtype=np.int64)
+    nbk = (npx >> _GROUP_SHIFT) + 1
+    t0 = np.int64(start_us)
+    t1 = np.int64(start_us + window_us)
+    x, y, tt = events["x"], events["y"], events["t"]
+    counts = _group_count(x, y, tt, t0, t1, np.int64(width), nbk, bounds)
+    flat = counts.T.ravel()  # bucket-major, thread within
+    cur_flat = np.concatenate([[0], np.cumsum(flat)[:-1]]).astype(np.int64)
+    cur = np.ascontiguousarray(cur_flat.reshape(nbk, nthr).T)
+    start = np.append(cur[0], cur_flat[-1] + flat[-1]).astype(np.int64)
+    total = int(start[-1])
+    off = np.empty(npx + 1, np.int64)
+    t = np.empty(total, np.int32)
+    p = np.empty(total, np.int8)
+    resorted = _group_fill(x, y, events["p"], tt, t0, t1, np.int64(width), np.int64(npx),
+                           bounds, cur, start, np.empty(total, np.uint16),
+                           np.empty(total, np.int32), np.empty(total, np.int8), off, t, p)
     if resorted:
         logger.info("ml: %d pixels' events were not in time order in [%d, %d) µs; sorted",
                     resorted, start_us, start_us + window_us)
@@ -3401,7 +3440,8 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
     fitted in full only), holding the
     thresholds whose spreads are at most ``hold_sd``; the thresholds' deviations then come
     from the pixels fitted in full alone (NaN where they were held); ``stats["full"]``
-    gets how many were fitted in full."""
+    gets how many were fitted in full, ``stats["retried"]`` how many of the others were
+    fitted again from a likelier point (:func:`_fast_kernel`)."""
     con, coff, scon, scoff = (np.ascontiguousarray(a) for a in priors)
     counts = np.diff(off)
     out_g = np.empty(npx)
@@ -3418,6 +3458,7 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
     parts = 1 if progress is None else min(_PROGRESS_PARTS, max(1, npx // _BLOCK))
     edges = np.linspace(0, npx, parts + 1).astype(np.int64)
     full = np.zeros(npx, np.uint8)
+    retry = np.zeros(npx, np.uint8)
     least = _least_slots(model.mode, np.int64(model.window_us), model.exact, model.locate,
                          _steepest_slopes(model.rows), model.reset_sigma ** 2, tq2,
                          model.noise_rate_per_us) if fast else np.empty(0)
@@ -3431,7 +3472,7 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
                          scoff[a:b], out_g[a:b], out_sd[a:b], out_con[a:b], out_coff[a:b],
                          out_flag[a:b], float(start_sigma), np.int64(model.split_us),
                          model.net_v2, np.int64(model.split2_us), block_order(b - a, _BLOCK),
-                         out_u[a:b], full[a:b], float(hold_sd), least)
+                         out_u[a:b], full[a:b], float(hold_sd), least, retry[a:b])
             if progress is not None:
                 progress(b)
             continue
@@ -3448,9 +3489,12 @@ def _run(model: MlModel, off: np.ndarray, t: np.ndarray, p: np.ndarray, npx: int
         if progress is not None:
             progress(b)
     if fast:
-        logger.debug("ml: %d of %d pixels fitted in full", int(full.sum()), npx)
+        n_retry = int(np.count_nonzero(retry & (full == 0)))
+        logger.debug("ml: %d of %d pixels fitted in full; %d fitted again from a likelier "
+                     "point", int(full.sum()), npx, n_retry)
         if stats is not None:
             stats["full"] = int(np.count_nonzero(full))
+            stats["retried"] = n_retry
     image = width > 0 and npx % width == 0
     if neighbours and image and not fixed and not np.any(sp > 0.0):
         # the fast fit's pixels fitted in full try their neighbours' fits too
