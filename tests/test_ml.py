@@ -1061,6 +1061,26 @@ def test_fast_fit_again_from_a_likelier_point() -> None:
     assert abs(float(g[0]) - math.log(truth)) < 3.0 * float(sd[0])
 
 
+def test_fast_fit_converges_where_newtons_method_cycles() -> None:
+    # 17.7 lux (the bench's speed cycle, row 206, column 920; thresholds each 1 % off,
+    # stated 0.005): nine events, the optimum between two of the table's rows, where the
+    # curvature jumps; Newton's steps alone cycle about it for the fit's twelve passes
+    # (the fit was then made in full), the bracket's middle ends the cycle
+    t = [24157, 30064, 72138, 74286, 113766, 119547, 121272, 161823, 164054]
+    p = [-1, -1, 1, 1, -1, -1, 1, 1, 1]
+    truth = 17.747497
+    pri = ml.thresholds_prior(IMX636, width=1, height=1, c_on=np.array([[0.25517]]),
+                              c_off=np.array([[0.25540]]), sigma=0.005)
+    stats: dict[str, int] = {}
+    g, sd, _, _, flag, _ = ml._run(ml.ml_model(default_rig("imx636"), IMX636),
+                                   np.array([0, len(t)]), np.array(t, np.int32),
+                                   np.array(p, np.int8), 1, pri, None, None, False, width=1,
+                                   fast=True, stats=stats)
+    assert stats == {"full": 0, "retried": 0}
+    assert int(flag[0]) == 0 and float(sd[0]) < 0.1
+    assert abs(float(g[0]) - math.log(truth)) < 3.0 * float(sd[0])
+
+
 def _fast_checker(sensor: SensorParams, truth: float, seed: int = 1
                   ) -> tuple[ml.MlModel, Callable[[list[float], bool], tuple[np.ndarray,
                                                                            np.ndarray]],

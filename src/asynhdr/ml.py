@@ -2461,6 +2461,9 @@ def _fast_newton(mode, g, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0a, v
     last = 0.0
     acc[:] = 0.0
     keep = False
+    # the optimum's bracket: the points whose step went up, and down
+    b_lo = -np.inf
+    b_hi = np.inf
     for it in range(_FAST_ITER):
         # the check's sum at the fit kept from a pass likely to be the last (the step
         # before under _KEEP_STEP deviations): the converged fit lies within _FAST_TOL
@@ -2471,10 +2474,18 @@ def _fast_newton(mode, g, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0a, v
         if not acc[1] > 0.0:
             break
         dg = min(max(-acc[0] / acc[1], -_MAX_STEP_G), _MAX_STEP_G)
+        if dg > 0.0:
+            b_lo = g
+        else:
+            b_hi = g
         if dg * last < 0.0 and abs(dg) > 0.5 * abs(last):
             # turning back by more than half the last step: the secant's point
             dg *= abs(last) / (abs(last) + abs(dg))
         gn = min(max(g + dg, g_lo), g_hi)
+        if not b_lo < gn < b_hi and b_lo > -np.inf and b_hi < np.inf:
+            # a step out of the bracket (the table's rows make the curvature jump, and
+            # Newton's method may cycle about the optimum): its middle
+            gn = 0.5 * (b_lo + b_hi)
         last = gn - g
         g = gn
         if abs(last) < max(_FAST_TOL / math.sqrt(acc[1]), _FAST_TOL * _TOL_G):
@@ -2483,11 +2494,15 @@ def _fast_newton(mode, g, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0a, v
                 break
             robust = True
             last = 0.0
+            b_lo = -np.inf
+            b_hi = np.inf
         elif not robust and acc[4] >= _FAST_OUTLIER_Z2 and lam > 0.0 and \
                 abs(last) * math.sqrt(acc[1]) < 1.0:
             # near enough for the residuals to tell the outliers
             robust = True
             last = 0.0
+            b_lo = -np.inf
+            b_hi = np.inf
     return g, converged, keep
 
 
