@@ -1039,6 +1039,20 @@ def test_fast_fit_check_finds_the_truths_optimum(case: str) -> None:
     assert abs(err) < 3.0 * sd
 
 
+def _fast_one_pixel(t: list[int], p: list[int], c_on: float, c_off: float
+                    ) -> tuple[float, float, int, dict[str, int]]:
+    """One IMX636 pixel's fast fit on its default rig, thresholds held at ``c_on``,
+    ``c_off`` (stated 0.005): ``(ln L, its deviation, flag, the run's stats)``."""
+    pri = ml.thresholds_prior(IMX636, width=1, height=1, c_on=np.array([[c_on]]),
+                              c_off=np.array([[c_off]]), sigma=0.005)
+    stats: dict[str, int] = {}
+    g, sd, _, _, flag, _ = ml._run(ml.ml_model(default_rig("imx636"), IMX636),
+                                   np.array([0, len(t)]), np.array(t, np.int32),
+                                   np.array(p, np.int8), 1, pri, None, None, False, width=1,
+                                   fast=True, stats=stats)
+    return float(g[0]), float(sd[0]), int(flag[0]), stats
+
+
 def test_fast_fit_again_from_a_likelier_point() -> None:
     # 0.766 lux (the bench's speed cycle, row 291, column 191; thresholds each 1 % off,
     # stated 0.005): Newton's method from the net change's start stops in another optimum
@@ -1048,17 +1062,10 @@ def test_fast_fit_again_from_a_likelier_point() -> None:
          77128, 80029, 110376, 113910, 119001, 125812, 131699, 138226, 144254, 161482,
          162863, 163926, 164794, 165717, 167143, 170416]
     p = [-1] * 7 + [1] * 7 + [-1] * 6 + [1] * 8
-    truth = 0.765888
-    pri = ml.thresholds_prior(IMX636, width=1, height=1, c_on=np.array([[0.25481]]),
-                              c_off=np.array([[0.27476]]), sigma=0.005)
-    stats: dict[str, int] = {}
-    g, sd, _, _, flag, _ = ml._run(ml.ml_model(default_rig("imx636"), IMX636),
-                                   np.array([0, len(t)]), np.array(t, np.int32),
-                                   np.array(p, np.int8), 1, pri, None, None, False, width=1,
-                                   fast=True, stats=stats)
+    g, sd, flag, stats = _fast_one_pixel(t, p, 0.25481, 0.27476)
     assert stats == {"full": 0, "retried": 1}
-    assert int(flag[0]) == 0 and float(sd[0]) < 0.1
-    assert abs(float(g[0]) - math.log(truth)) < 3.0 * float(sd[0])
+    assert flag == 0 and sd < 0.1
+    assert abs(g - math.log(0.765888)) < 3.0 * sd
 
 
 def test_fast_fit_converges_where_newtons_method_cycles() -> None:
@@ -1068,17 +1075,10 @@ def test_fast_fit_converges_where_newtons_method_cycles() -> None:
     # (the fit was then made in full), the bracket's middle ends the cycle
     t = [24157, 30064, 72138, 74286, 113766, 119547, 121272, 161823, 164054]
     p = [-1, -1, 1, 1, -1, -1, 1, 1, 1]
-    truth = 17.747497
-    pri = ml.thresholds_prior(IMX636, width=1, height=1, c_on=np.array([[0.25517]]),
-                              c_off=np.array([[0.25540]]), sigma=0.005)
-    stats: dict[str, int] = {}
-    g, sd, _, _, flag, _ = ml._run(ml.ml_model(default_rig("imx636"), IMX636),
-                                   np.array([0, len(t)]), np.array(t, np.int32),
-                                   np.array(p, np.int8), 1, pri, None, None, False, width=1,
-                                   fast=True, stats=stats)
+    g, sd, flag, stats = _fast_one_pixel(t, p, 0.25517, 0.25540)
     assert stats == {"full": 0, "retried": 0}
-    assert int(flag[0]) == 0 and float(sd[0]) < 0.1
-    assert abs(float(g[0]) - math.log(truth)) < 3.0 * float(sd[0])
+    assert flag == 0 and sd < 0.1
+    assert abs(g - math.log(17.747497)) < 3.0 * sd
 
 
 def _fast_checker(sensor: SensorParams, truth: float, seed: int = 1
