@@ -1046,7 +1046,8 @@ def _fast_one_pixel(t: list[int], p: list[int], c_on: float, c_off: float
     pri = ml.thresholds_prior(IMX636, width=1, height=1, c_on=np.array([[c_on]]),
                               c_off=np.array([[c_off]]), sigma=0.005)
     stats: dict[str, int] = {}
-    g, sd, _, _, flag, _ = ml._run(ml.ml_model(default_rig("imx636"), IMX636),
+    rig = default_rig("imx636")
+    g, sd, _, _, flag, _ = ml._run(ml.cached_model(rig, IMX636, window_us=rig.ramp_us),
                                    np.array([0, len(t)]), np.array(t, np.int32),
                                    np.array(p, np.int8), 1, pri, None, None, False, width=1,
                                    fast=True, stats=stats)
