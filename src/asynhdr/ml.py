@@ -3019,7 +3019,8 @@ def _sparse_kernel(todo, off, t, p, mode, exact, v0a, v0b, rows, g0, dlog, locat
 
 _GROUP_SHIFT = 13
 """The grouping puts the events into buckets of ``2**13`` consecutive pixels (a few MB of
-events each), then sorts each bucket by pixel in cache."""
+events each), then sorts each bucket by pixel in cache. At most 16: a bucket holds a
+pixel's index within it as ``uint16``."""
 
 
 @nb.njit(cache=True, parallel=True, error_model="numpy")
