@@ -7,6 +7,7 @@ import dataclasses
 import math
 from collections.abc import Callable
 
+import numba as nb
 import numpy as np
 import pytest
 
@@ -1218,6 +1219,58 @@ def test_fast_check_leaves_out_only_points_it_can_bound_above_the_fit(truth: flo
         assert floor <= pruned[k] <= whole[k] + 1e-9 * abs(whole[k]), k
         assert (pruned[k] < floor) == (whole[k] < floor)
     assert left >= 1  # at least the point 2.0 below leaves early
+
+
+def test_probe_terms_bound_the_exact_terms_from_below() -> None:
+    # the check's probes sum a lower bound of each event's -2 ln(f + lambda) without the
+    # exponential: never above the exact term (so a probe left out is one the exact sum
+    # would leave out), within 3e-5 of it where f and lambda lie far apart, and within
+    # 0.6 where they meet; its logarithm's bound within 1.3e-5 below ln x
+    @nb.njit
+    def logs(x: np.ndarray) -> np.ndarray:
+        out = np.empty_like(x)
+        for i in range(x.size):
+            out[i] = ml._log_below(x[i])
+        return out
+
+    @nb.njit(error_model="numpy")  # a zero slope divides by zero, as in the fits
+    def terms(z2: np.ndarray, var: np.ndarray, slope: np.ndarray, lam: float
+              ) -> tuple[np.ndarray, np.ndarray]:
+        lb = -2.0 * math.log(lam) if lam > 0.0 else np.inf
+        below = np.empty_like(z2)
+        exact = np.empty_like(z2)
+        for i in range(z2.size):
+            below[i] = ml._term_below(z2[i], var[i], slope[i], lb)
+            f = ml._time_density(z2[i], slope[i], 1.0 / var[i])
+            exact[i] = -2.0 * math.log(max(f + lam, ml._DENSITY_FLOOR))
+        return below, exact
+
+    gen = np.random.default_rng(0)
+    x = np.exp(gen.uniform(-700.0, 700.0, 200_000))
+    x = np.concatenate([x, [1.0, 2.0, np.nextafter(2.0, 0.0), 0.5, 1e-300, 1e300]])
+    gap = np.log(x) - logs(x)
+    assert gap.min() >= 0.0
+    assert gap.max() <= 1.3e-5
+    assert logs(np.array([np.inf]))[0] == pytest.approx(1024 * math.log(2.0))
+    n = 200_000
+    z2 = gen.exponential(4.0, n) ** 2
+    var = np.exp(gen.uniform(-8.0, 8.0, n))
+    slope = np.exp(gen.uniform(-6.0, 4.0, n)) * gen.choice([-1.0, 1.0], n)
+    slope[:10] = 0.0  # no density at all: lambda's term
+    for lam in (0.0, 1e-9, 1e-3, 0.3):
+        below, exact = terms(z2, var, slope, lam)
+        gap = exact - below
+        assert gap.min() >= 0.0, lam
+        # without lambda, a zero slope's term (the density's floor) is bounded by 710
+        assert gap[10 if lam == 0.0 else 0:].max() <= 0.6, lam
+        if lam > 0.0:
+            with np.errstate(divide="ignore"):
+                a = z2 + np.log(2.0 * math.pi * var / slope ** 2)  # -2 ln f
+            far = np.abs(a + 2.0 * math.log(lam)) > 45.0
+            assert far.sum() > 1000
+            assert gap[far].max() <= 3e-5, lam
+        else:
+            assert gap[10:].max() <= 3e-5
 
 
 @pytest.mark.parametrize(("cutoff_hz", "refractory_us"),
