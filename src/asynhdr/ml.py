@@ -632,20 +632,19 @@ def _slope_g(mode, j, w, e, m, exact, rows, dlog, locate):
     return _slope_slot(mode, j, e, s0, s1, s2, s3, rows, dlog)
 
 
-@intrinsic
-def _float_bits(typingctx, x):
-    """A float64's bits as an int64."""
-    def codegen(context, builder, signature, args):
-        return builder.bitcast(args[0], context.get_value_type(types.int64))
-    return types.int64(types.float64), codegen
+def _bitcast(source: Any, target: Any) -> Any:
+    """A compiled function giving a ``source`` value's bits as a ``target`` value."""
+    def typing(typingctx: Any, x: Any) -> Any:
+        def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+            return builder.bitcast(args[0], context.get_value_type(target))
+        return target(source), codegen
+    return intrinsic(typing)
 
 
-@intrinsic
-def _bits_float(typingctx, x):
-    """An int64's bits as a float64."""
-    def codegen(context, builder, signature, args):
-        return builder.bitcast(args[0], context.get_value_type(types.float64))
-    return types.float64(types.int64), codegen
+_float_bits = _bitcast(types.float64, types.int64)
+"""A float64's bits as an int64 (compiled code only)."""
+_bits_float = _bitcast(types.int64, types.float64)
+"""An int64's bits as a float64 (compiled code only)."""
 
 
 @nb.njit(cache=True, inline="always", error_model="numpy")
@@ -2450,8 +2449,8 @@ def _term_below(z2, var, slope, lb):
     meet (an event about as likely from the background as from the pixel)."""
     a = z2 + _log_below(6.283185307179586 * var / (slope * slope))
     # -2 ln(1 + e^(-d / 2)) >= -2 e^(-d / 2) >= -2 2^-floor(d / (2 ln 2)), and >= -2 ln 2
-    n = np.int64(min(abs(a - lb), 1400.0) * 0.7213475204444817)
-    corr = min(1.3862943611198906, 2.0 * _bits_float((1023 - min(n, 1022)) << 52))
+    n = np.int64(min(abs(a - lb), 1400.0) * 0.7213475204444817)  # at most 1009
+    corr = min(1.3862943611198906, 2.0 * _bits_float((1023 - n) << 52))
     # less 1e-9 for rounding, here and in the exact term
     return min(min(a, lb) - corr, _TERM_MAX) - 1e-9
 
