@@ -652,7 +652,8 @@ def _log_below(x):
     """A lower bound of ``ln x`` for a positive normal or infinite ``x``, within 1.3e-5 of
     it: ``x = 2^e m`` with ``1 <= m < 2`` (read from its bits), ``ln m = 2 atanh(s)`` with
     ``s = (m - 1) / (m + 1) < 1/3`` summed to ``s^7`` (every term left out is positive: at
-    most ``2 s^9 / 9 / (1 - s^2)``). Infinity gives about 710."""
+    most ``2 s^9 / 9 / (1 - s^2)``). Infinity gives about 710; a subnormal ``x`` (below
+    2.2e-308) has no bound."""
     b = _float_bits(x)
     e = (b >> 52) - 1023
     m = _bits_float((b & 0xFFFFFFFFFFFFF) | 0x3FF0000000000000)
