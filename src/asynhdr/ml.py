@@ -2466,13 +2466,16 @@ def _point_read(mode, own, j, w, e, s0, s1, s2, s3, rows, dlog):
 
 
 @nb.njit(cache=True, inline="always", error_model="numpy")
-def _point_term(below, z2, var, slope, lam, lb, nl, prod):
-    """One event's term into :func:`_point_terms`'s sum ``nl - 2 ln prod``: its density
-    multiplied into ``prod`` (:func:`_density_product`), or (``below``) the lower bound
-    of its term (:func:`_term_below`) added to ``nl``."""
+def _point_term(below, res, var, slope, lam, lb, nl, prod):
+    """One event's term into :func:`_point_terms`'s sum ``nl - 2 ln prod`` from its
+    residual ``res`` and variance ``var``: its density multiplied into ``prod``
+    (:func:`_density_product`), or (``below``) the lower bound of its term
+    (:func:`_term_below`) added to ``nl``."""
+    iw = 1.0 / var
+    z2 = res * res * iw
     if below:
         return nl + _term_below(z2, var, slope, lb), prod
-    return _density_product(_time_density(z2, slope, 1.0 / var) + lam, nl, prod)
+    return _density_product(_time_density(z2, slope, iw) + lam, nl, prod)
 
 
 @nb.njit(cache=True, inline="always", error_model="numpy")
@@ -2498,7 +2501,7 @@ def _point_terms(mode, dead, own, below, j, w, e, vs, lo, hi, sl, p, sr2, tq2, e
         # the first event from the cycle start's level
         res = vc - (vs + mu_u) - (c1 if p[lo] > 0 else -c2)
         var = max(sr2 + dtc * dtc * tq2 + su2, 1e-12)
-        nl, prod = _point_term(below, res * res / var, var, dtc, lam, lb, nl, prod)
+        nl, prod = _point_term(below, res, var, dtc, lam, lb, nl, prod)
     check = floor > -np.inf
     for i in range(lo + 1, hi):
         r = i - lo
@@ -2515,7 +2518,7 @@ def _point_terms(mode, dead, own, below, j, w, e, vs, lo, hi, sl, p, sr2, tq2, e
             var = sr2 * r + dtc * dtc * tq2 + var0
         res = vc - ref - step
         var = max(var, 1e-12)
-        nl, prod = _point_term(below, res * res / var, var, dtc, lam, lb, nl, prod)
+        nl, prod = _point_term(below, res, var, dtc, lam, lb, nl, prod)
         if check and (r + 1) % _CHECK_EVERY == 0:
             bound = (nl if below else nl - 2.0 * math.log(prod)) + tail[r + 1]
             if bound >= floor:
