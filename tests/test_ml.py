@@ -1224,8 +1224,8 @@ def test_fast_check_leaves_out_only_points_it_can_bound_above_the_fit(truth: flo
 def test_probe_terms_bound_the_exact_terms_from_below() -> None:
     # the check's probes sum a lower bound of each event's -2 ln(f + lambda) without the
     # exponential: never above the exact term (so a probe left out is one the exact sum
-    # would leave out), within 3e-5 of it where f and lambda lie far apart, and within
-    # 0.6 where they meet; its logarithm's bound within 1.3e-5 below ln x
+    # would leave out), within 1e-3 of it where f and lambda lie far apart, and within
+    # 0.6 where they meet; its logarithm's bound within 8.9e-4 below ln x
     @nb.njit
     def logs(x: np.ndarray) -> np.ndarray:
         out = np.empty_like(x)
@@ -1250,8 +1250,11 @@ def test_probe_terms_bound_the_exact_terms_from_below() -> None:
     x = np.concatenate([x, [1.0, 2.0, np.nextafter(2.0, 0.0), 0.5, 1e-300, 1e300]])
     gap = np.log(x) - logs(x)
     assert gap.min() >= 0.0
-    assert gap.max() <= 1.3e-5
-    assert logs(np.array([np.inf]))[0] == pytest.approx(1024 * math.log(2.0))
+    assert gap.max() <= 8.9e-4
+    # every mantissa: the cubic below ln m on a grid finer than its slope can turn on
+    m = np.linspace(1.0, 2.0, 1_000_001)
+    assert (np.log(m) - logs(m)).min() >= 1.9e-6
+    assert logs(np.array([np.inf]))[0] == pytest.approx(1024 * math.log(2.0), abs=1e-3)
     n = 200_000
     z2 = gen.exponential(4.0, n) ** 2
     var = np.exp(gen.uniform(-8.0, 8.0, n))
@@ -1268,9 +1271,9 @@ def test_probe_terms_bound_the_exact_terms_from_below() -> None:
                 a = z2 + np.log(2.0 * math.pi * var / slope ** 2)  # -2 ln f
             far = np.abs(a + 2.0 * math.log(lam)) > 45.0
             assert far.sum() > 1000
-            assert gap[far].max() <= 3e-5, lam
+            assert gap[far].max() <= 1e-3, lam
         else:
-            assert gap[10:].max() <= 3e-5
+            assert gap[10:].max() <= 1e-3
 
 
 @pytest.mark.parametrize(("cutoff_hz", "refractory_us"),
