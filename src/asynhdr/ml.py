@@ -2334,6 +2334,7 @@ def _fast_check(mode, gs, nk, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0
     own pass (:func:`_point_nll`); with ``have``, ``nl[0]`` holds the first's already."""
     nr = rows.shape[0]
     floor = -np.inf
+    lb = -2.0 * math.log(lam) if lam > 0.0 else np.inf  # the background's own term
     for k in range(nk):
         if mode == 1 and k > 0:
             # a probe at its nearest grid row: one row read per event (the row's index
@@ -2347,7 +2348,8 @@ def _fast_check(mode, gs, nk, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0
         vs, _, _ = _eval(mode, j, w, e, -1, False, exact, v0a, v0b, rows, dlog, locate)
         if k > 0 or not have:
             nl[k] = _point_nll(mode, dead, k == 0, j, w, e, vs, lo, hi, sl, p, sr2, tq2,
-                               eq2, lam, rows, dlog, c1, c2, mu_u, su2, floor, tail)
+                               eq2, lam, lb, rows, dlog, c1, c2, mu_u, su2, floor,
+                               tail)
         if k == 0 and prune and nk > 1:
             floor = nl[0] - _PROBE_MARGIN
             _least_terms(lo, hi, t, wmax, least, tail)
@@ -2397,7 +2399,7 @@ def _least_terms(lo, hi, t, wmax, least, tail):
 
 
 @nb.njit(cache=True, error_model="numpy", fastmath=_FAST_MATH)
-def _point_nll(mode, dead, own, j, w, e, vs, lo, hi, sl, p, sr2, tq2, eq2, lam, rows, dlog,
+def _point_nll(mode, dead, own, j, w, e, vs, lo, hi, sl, p, sr2, tq2, eq2, lam, lb, rows, dlog,
                c1, c2, mu_u, su2, floor, tail):
     """:func:`_fast_check`'s sum at one point (what :func:`_at_g` gave as ``j, w, e``, and
     ``vs``, the cycle start's level there): read between two grid rows (``own``) or at row
@@ -2406,35 +2408,36 @@ def _point_nll(mode, dead, own, j, w, e, vs, lo, hi, sl, p, sr2, tq2, eq2, lam, 
     instead. A point not the fit's own is first summed as a lower bound, each event's term
     by :func:`_term_below` (no exponential or logarithm per event): where that reaches
     the floor, the exact sum would too, and the bound is the answer; otherwise the exact
-    sum follows (:func:`_point_kinds`)."""
+    sum follows (:func:`_point_kinds`). ``lb``: ``-2 ln lam``, the background's own term
+    (:func:`_term_below`)."""
     jj = int(j)
     if own:
         return _point_kinds(mode, dead, True, False, jj, w, e, vs, lo, hi, sl, p, sr2, tq2,
-                            eq2, lam, rows, dlog, c1, c2, mu_u, su2, floor, tail)
+                            eq2, lam, lb, rows, dlog, c1, c2, mu_u, su2, floor, tail)
     if floor > -np.inf:
         b = _point_kinds(mode, dead, False, True, jj, w, e, vs, lo, hi, sl, p, sr2, tq2, eq2,
-                         lam, rows, dlog, c1, c2, mu_u, su2, floor, tail)
+                         lam, lb, rows, dlog, c1, c2, mu_u, su2, floor, tail)
         if b >= floor:
             return b
     return _point_kinds(mode, dead, False, False, jj, w, e, vs, lo, hi, sl, p, sr2, tq2, eq2,
-                        lam, rows, dlog, c1, c2, mu_u, su2, floor, tail)
+                        lam, lb, rows, dlog, c1, c2, mu_u, su2, floor, tail)
 
 
 @nb.njit(cache=True, inline="always", error_model="numpy")
-def _point_kinds(mode, dead, own, below, j, w, e, vs, lo, hi, sl, p, sr2, tq2, eq2, lam,
+def _point_kinds(mode, dead, own, below, j, w, e, vs, lo, hi, sl, p, sr2, tq2, eq2, lam, lb,
                  rows, dlog, c1, c2, mu_u, su2, floor, tail):
     """:func:`_point_terms` for each of the model's four kinds, each its own loop (``own``
     and ``below`` constants where this is inlined)."""
     if mode == 1:
         if dead:
             return _point_terms(1, True, own, below, j, w, e, vs, lo, hi, sl, p, sr2, tq2,
-                                eq2, lam, rows, dlog, c1, c2, mu_u, su2, floor, tail)
+                                eq2, lam, lb, rows, dlog, c1, c2, mu_u, su2, floor, tail)
         return _point_terms(1, False, own, below, j, w, e, vs, lo, hi, sl, p, sr2, tq2, eq2,
-                            lam, rows, dlog, c1, c2, mu_u, su2, floor, tail)
+                            lam, lb, rows, dlog, c1, c2, mu_u, su2, floor, tail)
     if dead:
         return _point_terms(0, True, own, below, j, w, e, vs, lo, hi, sl, p, sr2, tq2, eq2,
-                            lam, rows, dlog, c1, c2, mu_u, su2, floor, tail)
-    return _point_terms(0, False, own, below, j, w, e, vs, lo, hi, sl, p, sr2, tq2, eq2, lam,
+                            lam, lb, rows, dlog, c1, c2, mu_u, su2, floor, tail)
+    return _point_terms(0, False, own, below, j, w, e, vs, lo, hi, sl, p, sr2, tq2, eq2, lam, lb,
                         rows, dlog, c1, c2, mu_u, su2, floor, tail)
 
 
@@ -2487,7 +2490,7 @@ def _point_term(below, res, var, slope, lam, lb, nl, prod):
 
 @nb.njit(cache=True, inline="always", error_model="numpy")
 def _point_terms(mode, dead, own, below, j, w, e, vs, lo, hi, sl, p, sr2, tq2, eq2, lam,
-                 rows, dlog, c1, c2, mu_u, su2, floor, tail):
+                 lb, rows, dlog, c1, c2, mu_u, su2, floor, tail):
     """:func:`_point_nll` for one kind of model, reading and sum (``mode``, ``dead``,
     ``own`` and ``below`` constants where it is inlined): the first event apart, then the
     others, with :func:`_fast_pass`'s model. The densities are multiplied, the logarithm
@@ -2497,7 +2500,6 @@ def _point_terms(mode, dead, own, below, j, w, e, vs, lo, hi, sl, p, sr2, tq2, e
         return 0.0
     nl = 0.0
     prod = 1.0
-    lb = -2.0 * math.log(lam) if below and lam > 0.0 else np.inf
     vc, dtc = _point_read(mode, own, j, w, e, sl[0, 0], sl[0, 1], sl[0, 2], sl[0, 3], rows,
                           dlog)
     # without a dead time, the walk from the first event's level
