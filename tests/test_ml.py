@@ -1086,13 +1086,16 @@ def test_fast_fit_converges_where_newtons_method_cycles() -> None:
 def _fast_checker(sensor: SensorParams, truth: float, seed: int = 1
                   ) -> tuple[ml.MlModel, Callable[[list[float], bool], tuple[np.ndarray,
                                                                            np.ndarray]],
-                             float, int, Callable[[float, bool], np.ndarray]]:
+                             float, int, Callable[..., np.ndarray],
+                             Callable[[float], tuple[float, float, float]]]:
     """The fast fit's check (``ml._fast_check``) on one simulated flat pixel of radiance
     ``truth``, with the imx636 preset's designed rig: ``check(points, prune)`` gives the
     points as read (probes at their grid rows) and their ``-2 ln L``; then the least the
     events can add to such a sum (``ml._least_terms``), how many they are, and
-    ``newton(g, robust)``: the fast fit's Newton sums at ``g`` (``ml._fast_pass``), with
-    the check's sum kept."""
+    ``newton(g, robust, stride=1, hi=n)``: the fast fit's Newton sums at ``g``
+    (``ml._fast_pass``) over the first ``hi`` events, every ``stride``-th, with the check's
+    sum kept; ``coarse(g)``: the coarse start from ``g`` (``ml._fast_coarse``), the fit
+    over every event from it (``ml._fast_newton``) and that fit's deviation."""
     rig = default_rig("imx636")
     m = ml.ml_model(rig, sensor)
     drawn = draw_thresholds(sensor, width=1, height=1, rng=np.random.default_rng(seed))
@@ -1123,16 +1126,24 @@ def _fast_checker(sensor: SensorParams, truth: float, seed: int = 1
                        least, tt, wmax, np.empty(n + 1))
         return g, nl
 
-    def newton(g: float, robust: bool) -> np.ndarray:
+    common = (sl, pp, m.dead, m.reset_sigma ** 2, tq2, eq2, m.noise_rate_per_us, m.exact,
+              m.v0[0], m.v0[1], m.rows, m.g0, m.dlog, m.locate, c_on, c_off, mu_u, su * su)
+
+    def newton(g: float, robust: bool, stride: int = 1, hi: int = n) -> np.ndarray:
         acc = np.zeros(7)
-        ml._fast_pass(m.mode, g, 0, n, sl, pp, m.dead, m.reset_sigma ** 2, tq2, eq2,
-                      m.noise_rate_per_us, m.exact, m.v0[0], m.v0[1], m.rows, m.g0, m.dlog,
-                      m.locate, c_on, c_off, mu_u, su * su, robust, True, acc)
+        ml._fast_pass(m.mode, g, 0, hi, *common, robust, True, acc, stride)
         return acc
+
+    def coarse(g: float) -> tuple[float, float, float]:
+        acc = np.zeros(7)
+        gc = ml._fast_coarse(m.mode, g, 0, n, *common, m.g_lo, m.g_hi, acc)
+        fit, converged, _ = ml._fast_newton(m.mode, gc, 0, n, *common, m.g_lo, m.g_hi, acc)
+        assert converged
+        return gc, fit, 1.0 / math.sqrt(acc[1])
 
     tail = np.empty(n + 1)
     ml._least_terms(0, n, tt, wmax, least, tail)
-    return m, check, float(tail[0]), n, newton
+    return m, check, float(tail[0]), n, newton, coarse
 
 
 @pytest.mark.parametrize("refractory_us", [0.0, 40.0])
@@ -1146,7 +1157,7 @@ def test_fast_check_reads_its_points_at_table_rows_as_the_model_there(
                                        refractory_us=refractory_us,
                                        reset_noise_sigma=0.01 if refractory_us else 0.0)
     truth = 1.35
-    m, check, _, _, _ = _fast_checker(sensor, truth)
+    m, check, _, _, _, _ = _fast_checker(sensor, truth)
     assert m.mode == 1 and m.dead == (refractory_us > 0)
     near = round((math.log(truth) - m.g0) / m.dlog)  # the row nearest L
     for j in range(near - 15, near + 16):  # g0 + j dlog floors to j - 1 for some
@@ -1176,7 +1187,7 @@ def test_fast_fit_newton_pass_keeps_the_checks_own_sum(refractory_us: float) -> 
                                        reset_noise_sigma=0.01 if refractory_us else 0.0,
                                        jitter_sigma_us=2.0 if refractory_us else 0.0)
     truth = 20.0
-    m, check, _, _, newton = _fast_checker(sensor, truth, seed=2)
+    m, check, _, _, newton, _ = _fast_checker(sensor, truth, seed=2)
     assert m.dead == (refractory_us > 0)
     sums = []
     for d in (-0.3, -0.013, 0.0, 0.021, 0.4):
@@ -1190,6 +1201,54 @@ def test_fast_fit_newton_pass_keeps_the_checks_own_sum(refractory_us: float) -> 
     assert min(sums[0], sums[-1]) > min(sums[1:4]) + 1.0
 
 
+def _dead_sensor() -> SensorParams:
+    """A sensor whose events each stand alone in the likelihood (a dead time)."""
+    return get_preset("ideal").with_(name="kind", cutoff_hz=3000.0, refractory_us=40.0,
+                                     reset_noise_sigma=0.01, jitter_sigma_us=2.0)
+
+
+def test_fast_pass_with_a_stride_sums_every_strided_events_terms() -> None:
+    # with a dead time each event's term stands alone: a pass on every s-th event sums
+    # the terms of events 0, s, 2s, ..., each the difference of two passes over the
+    # events up to it and up to the one before
+    m, _, _, n, newton, _ = _fast_checker(_dead_sensor(), 2000.0, seed=4)
+    assert m.dead and n >= 40
+    g = math.log(2000.0) + 0.05
+    prefix = np.array([newton(g, False, 1, k) for k in range(n + 1)])
+    terms = np.diff(prefix, axis=0)
+    sums = [0, 1, 2, 3, 5, 6]  # the Newton sums, the chi-square, -2 ln L (4: max z^2)
+    for s in (1, 3, 7):
+        got = newton(g, False, s)
+        want = terms[::s]
+        assert got[sums] == pytest.approx(want[:, sums].sum(axis=0), rel=1e-9, abs=1e-9), s
+        # without outlier weights an event's chi-square term is its z^2
+        assert got[4] == pytest.approx(np.max(want[:, 5]), rel=1e-9)
+        assert s == 1 or got[1] < prefix[-1, 1] * 0.6  # fewer events, less curvature
+
+
+@pytest.mark.parametrize("start", [-0.6, 0.6])
+def test_fast_coarse_start_lands_within_a_few_deviations_of_the_fit(start: float) -> None:
+    # the coarse start (Newton on every n // 16-th event, then one step on every
+    # quarter-stride ...) brings a start 0.6 off in ln L (the net change's median error)
+    # to within _KEEP_STEP deviations of the fit over all events, and the fit from there
+    # is the fit from the truth
+    m, _, _, n, _, coarse = _fast_checker(_dead_sensor(), 2000.0, seed=4)
+    assert m.dead and n // ml._COARSE_EVENTS >= 2
+    g = math.log(2000.0)
+    gc, fit, sd = coarse(g + start)
+    assert abs(gc - (g + start)) > 0.3  # it moved
+    assert abs(gc - fit) < ml._KEEP_STEP * sd
+    _, fit_truth, _ = coarse(g)
+    assert fit == pytest.approx(fit_truth, abs=0.2 * sd)
+    assert abs(fit - g) < 4.0 * sd
+    # without a dead time, no subsets: the start is left as it is
+    m2, _, _, n2, _, coarse2 = _fast_checker(get_preset("ideal").with_(
+        name="kind", cutoff_hz=3000.0), 2000.0, seed=4)
+    assert not m2.dead and n2 // ml._COARSE_EVENTS >= 2
+    assert coarse2(g + start)[0] == g + start
+
+
+
 @pytest.mark.parametrize("truth", [0.6, 20.0, 3000.0, 1e5])
 def test_fast_check_leaves_out_only_points_it_can_bound_above_the_fit(truth: float) -> None:
     # pruned, a probe leaves the check's pass once the least its remaining events can add
@@ -1197,7 +1256,7 @@ def test_fast_check_leaves_out_only_points_it_can_bound_above_the_fit(truth: flo
     # whole sum and at least that floor, and its decision is the unpruned one
     sensor = get_preset("ideal").with_(name="kind", cutoff_hz=3000.0, refractory_us=40.0,
                                        reset_noise_sigma=0.01, jitter_sigma_us=2.0)
-    _, check, least, n, _ = _fast_checker(sensor, truth, seed=3)
+    _, check, least, n, _, _ = _fast_checker(sensor, truth, seed=3)
     # the fit's point: the likeliest of a scan 0.02 apart about the truth
     scan = [math.log(truth) + 0.02 * i for i in range(-50, 51)]
     # the least the events can add: below every point's sum, the fit's by less than the

@@ -2162,8 +2162,15 @@ step before it was under this many deviations: on the speed's cycle (docs/ml.md)
 after such a step is most often the last (the median fit that converges in two passes
 steps 3.8 deviations, then 0.02)."""
 _FAST_OUTLIER_Z2 = 9.0
-"""... with the outlier weights from the first step under one standard deviation on, when
-an event lies three deviations off."""
+"""... with the outlier weights from the first step under :data:`_KEEP_STEP` deviations
+on, when an event lies three deviations off."""
+_COARSE_EVENTS = 16
+"""The fast fit first converges on every ``n // 16``-th of a pixel's ``n`` events
+(:func:`_fast_coarse`), where that stride is at least 2 ..."""
+_COARSE_TOL = 0.5
+"""... until a step is under this share of that subset's deviation ..."""
+_COARSE_FACTOR = 4
+"""... then takes one step on every ``1 / 4`` as many events, and so on."""
 _FAST_MATH = {"contract", "afn", "reassoc", "arcp"}
 """The fast fit's passes may fuse, reorder and approximate floating-point operations
 (LLVM's fast-math flags, without those that assume no infinity or NaN)."""
@@ -2189,7 +2196,7 @@ def _read_slots(mode, lo, hi, t, dead, exact, locate, wmax, sl):
 
 @nb.njit(cache=True, error_model="numpy", fastmath=_FAST_MATH)
 def _fast_pass(mode, g, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
-               dlog, locate, c1, c2, mu_u, su2, robust, keep, acc):
+               dlog, locate, c1, c2, mu_u, su2, robust, keep, acc, stride):
     """One pass over a pixel's events at ``g`` with the thresholds held at ``c1``, ``c2``
     and the start offset at its prior's mean ``mu_u`` (variance ``su2``, added to the
     first equation's): the Newton sums of the one-parameter likelihood into ``acc``:
@@ -2197,28 +2204,30 @@ def _fast_pass(mode, g, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0a, v0b
     (the model of :func:`_normal`, its gradient's Jacobian term included; ``robust``: the
     outlier weights at ``g``; ``sl``: the events' slots, :func:`_read_slots`); with
     ``keep``, ``acc[6]``: the events' ``-2 sum ln(f_i + lambda)`` at ``g``, as
-    :func:`_fast_check` sums it for its first point. Without a
-    dead time the walk is taken from the first event's level (``u`` drops out). Each of
+    :func:`_fast_check` sums it for its first point. With a dead time each event's term
+    stands alone, and ``stride`` > 1 sums the first event and every ``stride``-th after
+    it (:func:`_fast_coarse`); without one the walk is taken from the first event's level
+    (``u`` drops out) and ``stride`` must be 1. Each of
     the model's four kinds (:data:`MlModel.mode`, with or without a dead time) runs its
     own loop (:func:`_fast_sums`)."""
     if mode == 1:
         if dead:
             _fast_sums(1, True, g, lo, hi, sl, p, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
-                       g0, dlog, locate, c1, c2, mu_u, su2, robust, keep, acc)
+                       g0, dlog, locate, c1, c2, mu_u, su2, robust, keep, acc, stride)
         else:
             _fast_sums(1, False, g, lo, hi, sl, p, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
-                       g0, dlog, locate, c1, c2, mu_u, su2, robust, keep, acc)
+                       g0, dlog, locate, c1, c2, mu_u, su2, robust, keep, acc, stride)
     elif dead:
         _fast_sums(0, True, g, lo, hi, sl, p, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
-                   dlog, locate, c1, c2, mu_u, su2, robust, keep, acc)
+                   dlog, locate, c1, c2, mu_u, su2, robust, keep, acc, stride)
     else:
         _fast_sums(0, False, g, lo, hi, sl, p, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
-                   dlog, locate, c1, c2, mu_u, su2, robust, keep, acc)
+                   dlog, locate, c1, c2, mu_u, su2, robust, keep, acc, stride)
 
 
 @nb.njit(cache=True, inline="always", error_model="numpy")
 def _fast_sums(mode, dead, g, lo, hi, sl, p, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
-               dlog, locate, c1, c2, mu_u, su2, robust, keep, acc):
+               dlog, locate, c1, c2, mu_u, su2, robust, keep, acc, stride):
     """:func:`_fast_pass` for one kind of model (``mode`` and ``dead`` constants where it
     is inlined): the first event apart, and no branch on an event's values in the loop."""
     if hi <= lo:
@@ -2247,7 +2256,7 @@ def _fast_sums(mode, dead, g, lo, hi, sl, p, sr2, tq2, eq2, lam, exact, v0a, v0b
     dbase = dgc
     var0 = dtc * dtc * tq2
     level = 0.0
-    for i in range(lo + 1, hi):
+    for i in range(lo + stride, hi, stride):
         r = i - lo
         vc, dgc, dtc = _eval_slot(mode, jg, wg, eg, sl[r, 0], sl[r, 1], sl[r, 2], sl[r, 3],
                                   rows, dlog)
@@ -2537,10 +2546,13 @@ def _point_terms(mode, dead, own, below, j, w, e, vs, lo, hi, sl, p, sr2, tq2, e
 
 @nb.njit(cache=True, error_model="numpy")
 def _fast_newton(mode, g, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows, g0,
-                 dlog, locate, c1, c2, mu_u, su2, g_lo, g_hi, acc):
+                 dlog, locate, c1, c2, mu_u, su2, g_lo, g_hi, acc, stride=1, tol=_FAST_TOL,
+                 iters=_FAST_ITER):
     """The fast fit's Newton iterations from ``g`` (:func:`_fast_pass`; the outlier weights
-    once an event lies three deviations off): ``(g, converged, keep)``, with the last
-    pass's sums in ``acc`` and, when ``keep``, the check's sum at the fit in ``acc[6]``."""
+    once an event lies three deviations off), at most ``iters``, until a step is under
+    ``tol`` deviations: ``(g, converged, keep)``, with the last pass's sums in ``acc`` and,
+    when ``keep``, the check's sum at the fit in ``acc[6]``. With ``stride`` > 1, on every
+    ``stride``-th event (:func:`_fast_coarse`): no outlier weights, no check's sum."""
     robust = False
     converged = False
     last = 0.0
@@ -2549,13 +2561,13 @@ def _fast_newton(mode, g, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0a, v
     # the optimum's bracket: the points whose step went up, and down
     b_lo = -np.inf
     b_hi = np.inf
-    for it in range(_FAST_ITER):
+    for it in range(iters):
         # the check's sum at the fit kept from a pass likely to be the last (the step
         # before under _KEEP_STEP deviations): the converged fit lies within _FAST_TOL
         # deviations of it
-        keep = it > 0 and abs(last) * math.sqrt(acc[1]) < _KEEP_STEP
+        keep = stride == 1 and it > 0 and abs(last) * math.sqrt(acc[1]) < _KEEP_STEP
         _fast_pass(mode, g, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
-                   g0, dlog, locate, c1, c2, mu_u, su2, robust, keep, acc)
+                   g0, dlog, locate, c1, c2, mu_u, su2, robust, keep, acc, stride)
         if not acc[1] > 0.0:
             break
         dg = min(max(-acc[0] / acc[1], -_MAX_STEP_G), _MAX_STEP_G)
@@ -2573,22 +2585,51 @@ def _fast_newton(mode, g, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0a, v
             gn = 0.5 * (b_lo + b_hi)
         last = gn - g
         g = gn
-        if abs(last) < max(_FAST_TOL / math.sqrt(acc[1]), _FAST_TOL * _TOL_G):
-            if robust or acc[4] < _FAST_OUTLIER_Z2 or lam <= 0.0:
+        if abs(last) < max(tol / math.sqrt(acc[1]), _FAST_TOL * _TOL_G):
+            if robust or acc[4] < _FAST_OUTLIER_Z2 or lam <= 0.0 or stride > 1:
                 converged = True
                 break
             robust = True
             last = 0.0
             b_lo = -np.inf
             b_hi = np.inf
-        elif not robust and acc[4] >= _FAST_OUTLIER_Z2 and lam > 0.0 and \
-                abs(last) * math.sqrt(acc[1]) < 1.0:
+        elif not robust and acc[4] >= _FAST_OUTLIER_Z2 and lam > 0.0 and stride == 1 and \
+                abs(last) * math.sqrt(acc[1]) < _KEEP_STEP:
             # near enough for the residuals to tell the outliers
             robust = True
             last = 0.0
             b_lo = -np.inf
             b_hi = np.inf
     return g, converged, keep
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _fast_coarse(mode, g, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, rows,
+                 g0, dlog, locate, c1, c2, mu_u, su2, g_lo, g_hi, acc):
+    """The fast fit's start brought near its optimum on subsets of the events (with a
+    dead time, where each event's term stands alone): Newton's method on every ``s``-th
+    event (``s = n //`` :data:`_COARSE_EVENTS`) until a step is under
+    :data:`_COARSE_TOL` of that subset's deviations, then one step on every ``s / 4``-th,
+    and so on while the stride exceeds 1 (:func:`_fast_newton`). The optimum on every
+    ``s``-th event lies about ``sqrt(s - 1)`` of the fit's deviations from the fit on
+    every event (its own deviation is ``sqrt(s)`` times the fit's), so each step starts a
+    few of its subset's deviations off, and the fit on every event typically starts
+    under :data:`_KEEP_STEP` of its own: one plain pass, then the pass that keeps the
+    check's sum. ``g`` unchanged without a dead time or with fewer than ``2 *``
+    :data:`_COARSE_EVENTS` events."""
+    s = (hi - lo) // _COARSE_EVENTS
+    if not dead or s < 2:
+        return g
+    g, _, _ = _fast_newton(mode, g, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
+                           rows, g0, dlog, locate, c1, c2, mu_u, su2, g_lo, g_hi, acc, s,
+                           _COARSE_TOL, _FAST_ITER)
+    s //= _COARSE_FACTOR
+    while s > 1:
+        g, _, _ = _fast_newton(mode, g, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0a,
+                               v0b, rows, g0, dlog, locate, c1, c2, mu_u, su2, g_lo, g_hi,
+                               acc, s, _COARSE_TOL, 1)
+        s //= _COARSE_FACTOR
+    return g
 
 
 @nb.njit(cache=True, parallel=True, error_model="numpy")
@@ -2599,7 +2640,8 @@ def _fast_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, row
     """Every pixel's fast fit (docs/ml.md, "The fast fit"): ``g`` alone, the thresholds
     held at their priors (a calibration's, or learned ones whose spreads are at most
     ``hold_sd``: the others are fitted in full), by Newton's method on the likelihood from
-    the net change's start (:func:`_fast_newton`). Where the likelihood is lower by more
+    the net change's start (:func:`_fast_newton`), brought near on subsets of the events
+    first (:func:`_fast_coarse`). Where the likelihood is lower by more
     than :data:`_PROBE_MARGIN` at one of the points :data:`_FAST_PROBES` away (another
     optimum), the fit is made again from the likeliest of them, once. A fit that does not
     converge, reaches a bound or is vague, whose chi-square lies beyond its spread with no
@@ -2650,6 +2692,9 @@ def _fast_kernel(off, t, p, mode, dead, sr2, tq2, eq2, lam, exact, v0a, v0b, row
             if held:
                 _read_slots(mode, lo, hi, t, dead, exact, locate, wmax, sl)
             for _attempt in range(2 if held else 0):
+                g = _fast_coarse(mode, g, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0a,
+                                 v0b, rows, g0, dlog, locate, c1, c2, mu_u, su * su, g_lo,
+                                 g_hi, acc)
                 g, converged, keep = _fast_newton(mode, g, lo, hi, sl, p, dead, sr2, tq2, eq2,
                                                   lam, exact, v0a, v0b, rows, g0, dlog, locate,
                                                   c1, c2, mu_u, su * su, g_lo, g_hi, acc)
