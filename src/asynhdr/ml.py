@@ -2617,18 +2617,14 @@ def _fast_coarse(mode, g, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0a, v
     under :data:`_KEEP_STEP` of its own: one plain pass, then the pass that keeps the
     check's sum. ``g`` unchanged without a dead time or with fewer than ``2 *``
     :data:`_COARSE_EVENTS` events."""
-    s = (hi - lo) // _COARSE_EVENTS
-    if not dead or s < 2:
-        return g
-    g, _, _ = _fast_newton(mode, g, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0a, v0b,
-                           rows, g0, dlog, locate, c1, c2, mu_u, su2, g_lo, g_hi, acc, s,
-                           _COARSE_TOL, _FAST_ITER)
-    s //= _COARSE_FACTOR
+    s = (hi - lo) // _COARSE_EVENTS if dead else 0
+    iters = _FAST_ITER  # to convergence on the first subset, one step on each after
     while s > 1:
         g, _, _ = _fast_newton(mode, g, lo, hi, sl, p, dead, sr2, tq2, eq2, lam, exact, v0a,
                                v0b, rows, g0, dlog, locate, c1, c2, mu_u, su2, g_lo, g_hi,
-                               acc, s, _COARSE_TOL, 1)
+                               acc, s, _COARSE_TOL, iters)
         s //= _COARSE_FACTOR
+        iters = 1
     return g
 
 
